@@ -1,0 +1,1 @@
+"""Fotoskhema REST API, tile server and command line."""

@@ -1,0 +1,108 @@
+"""The ``fotoskhema`` command: run the service's parts, or the pipeline on a folder without them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fotoskhema", description="Fotoskhema photogrammetry service.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    up = sub.add_parser("up", help="everything on this machine: Redis, one Celery worker and the API + viewer")
+    _add_http_args(up, "127.0.0.1")
+    up.add_argument("--queues", default="cpu,gpu", help="queues the embedded worker consumes")
+    serve = sub.add_parser("serve", help="the REST API, tile server and viewer only")
+    _add_http_args(serve, "127.0.0.1")
+    worker = sub.add_parser("worker", help="a Celery worker running pipeline stages")
+    worker.add_argument("--queues", default="cpu", help="comma-separated queues to consume (cpu, gpu)")
+    worker.add_argument("--concurrency", type=int, default=1, help="parallel jobs in this worker")
+    process = sub.add_parser("process", help="run the mosaic pipeline on a folder of photos, no service needed")
+    process.add_argument("directory", type=Path, help="folder of overlapping photos (JPEG, PNG, TIFF)")
+    process.add_argument("-o", "--output", type=Path, required=True, help="output folder (mosaic.tif, report.json)")
+    process.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                         help="pipeline option, e.g. --set working_max_px=1600 (repeatable)")
+    return parser
+
+
+def _add_http_args(parser: argparse.ArgumentParser, host: str) -> None:
+    parser.add_argument("--host", default=host, help="interface to listen on")
+    parser.add_argument("--port", type=int, default=8000, help="TCP port")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    handler = {"up": _up, "serve": _serve, "worker": _worker, "process": _process}[args.command]
+    return int(handler(args) or 0)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn  # noqa: PLC0415 - keep `fotoskhema --help` fast
+
+    from api.main import create_app  # noqa: PLC0415
+
+    uvicorn.run(create_app(), host=args.host, port=args.port, log_level="info")
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from workers.celery_app import app  # noqa: PLC0415
+
+    app.worker_main(["worker", "--loglevel", "INFO", "-Q", args.queues, "--concurrency", str(args.concurrency)])
+    return 0
+
+
+def _up(args: argparse.Namespace) -> int:
+    from api.services import start_redis, start_worker, stop  # noqa: PLC0415
+    from api.settings import get_settings  # noqa: PLC0415
+
+    settings = get_settings()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    print(f"fotoskhema: data in {settings.data_dir.resolve()}, Redis at {settings.redis_url}", flush=True)
+    redis = start_redis(settings.redis_url, settings.data_dir / "redis")
+    worker = start_worker(args.queues, 1, {"FOTOSKHEMA_DATA_DIR": str(settings.data_dir.resolve())})
+    try:
+        print(f"fotoskhema: viewer on http://{args.host}:{args.port}/", flush=True)
+        return _serve(args)
+    finally:
+        stop([worker, redis])
+
+
+def _process(args: argparse.Namespace) -> int:
+    from workers.pipeline import PipelineError, process_directory  # noqa: PLC0415
+
+    options = dict(_parse_option(item) for item in args.set)
+
+    def report_progress(stage: str, fraction: float, detail: str) -> None:
+        print(f"\r{stage:16s} {100 * fraction:5.1f}%  {detail:40s}", end="", file=sys.stderr, flush=True)
+
+    try:
+        report = process_directory(args.directory, args.output, options, progress=report_progress)
+    except (PipelineError, ValueError) as exc:
+        print(f"\nfotoskhema: error: {exc}", file=sys.stderr)
+        return 1
+    print(file=sys.stderr)
+    summary = {k: report[k] for k in ("tie_point_rms_px", "georeferenced", "crs", "gsd_m", "stage_seconds")}
+    summary.update(mosaic=str(args.output / "mosaic.tif"), frames_used=len(report["frames_used"]),
+                   frames_rejected=report["frames_rejected"])
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _parse_option(item: str) -> tuple[str, Any]:
+    key, sep, value = item.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"fotoskhema: --set expects KEY=VALUE, got {item!r}")
+    try:
+        return key.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return key.strip(), value
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    sys.exit(main())

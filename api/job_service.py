@@ -1,0 +1,107 @@
+"""Creating, reading and cancelling jobs. A job is born as a workspace (config + inputs) and a
+``queued`` record before its chain is sent, so a worker always finds what it needs."""
+
+from __future__ import annotations
+
+import shutil
+from typing import Any
+
+from pydantic import ValidationError
+from sqlalchemy import select
+
+from api.db import Database, Flight, Job, JobStatus
+from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
+from api.models import JobCreate, JobOut
+from api.queue import JobQueue
+from api.settings import Settings
+from workers.config import build_config
+from workers.pipeline import stage_names
+from workers.workspace import flight_folder, job_workspace
+
+
+def job_out(job: Job) -> JobOut:
+    return JobOut(id=job.id, flight_id=job.flight_id, kind=job.kind, status=job.status, stage=job.stage,
+                  stages=stage_names(job.kind), progress=job.progress, progress_detail=job.progress_detail,
+                  timings=job.timings or {}, error=job.error, options=job.options or {},
+                  created_at=job.created_at, updated_at=job.updated_at)
+
+
+def validated_config(kind: str, options: dict[str, Any]) -> dict[str, Any]:
+    try:
+        return build_config(kind, options).model_dump()
+    except ValidationError as exc:
+        problems = "; ".join(f"options.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise InvalidInputError(problems) from None
+
+
+def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreate) -> JobOut:
+    config = validated_config(body.kind, body.options)
+    with db.session() as s:
+        flight = s.get(Flight, body.flight_id)
+        if flight is None:
+            raise NotFoundError(f"flight {body.flight_id} not found")
+        if len(flight.images) < 2:
+            raise InvalidInputError(f"flight {flight.id} has {len(flight.images)} image(s); a mosaic needs at least 2")
+        frames = [_frame_input(settings, flight.id, image) for image in flight.images]
+        job = Job(flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued.value)
+        s.add(job)
+        s.flush()
+        ws = job_workspace(settings.data_dir, job.id)
+        try:
+            ws.save_config(config)
+            ws.save_inputs(frames)
+        except OSError:
+            shutil.rmtree(ws.root, ignore_errors=True)
+            raise
+        job_id = job.id
+    return _enqueue(db, queue, job_id, body.kind)
+
+
+def _frame_input(settings: Settings, flight_id: int, image: Any) -> dict[str, Any]:
+    path = (flight_folder(settings.data_dir, flight_id) / image.stored_name).resolve()
+    meta = {k: v for k, v in (image.meta or {}).items() if k != "sha256"}
+    return {**meta, "name": image.filename, "path": str(path), "image_id": image.id}
+
+
+def _enqueue(db: Database, queue: JobQueue, job_id: int, kind: str) -> JobOut:
+    try:
+        chain_id = queue.enqueue(job_id, kind)
+    except Exception as exc:  # the broker is down: say so, and don't leave a job that never runs
+        with db.session() as s:
+            job = s.get(Job, job_id)
+            assert job is not None
+            job.status, job.error = JobStatus.failed.value, f"could not reach the job queue: {exc}"
+        raise UnavailableError(f"the job queue is unavailable ({type(exc).__name__}); try again shortly") from None
+    with db.session() as s:
+        job = s.get(Job, job_id)
+        assert job is not None
+        job.celery_id = chain_id
+        return job_out(job)
+
+
+def get_job(db: Database, job_id: int) -> JobOut:
+    with db.session() as s:
+        job = s.get(Job, job_id)
+        if job is None:
+            raise NotFoundError(f"job {job_id} not found")
+        return job_out(job)
+
+
+def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:
+    with db.session() as s:
+        query = select(Job).order_by(Job.id.desc())
+        if flight_id is not None:
+            query = query.where(Job.flight_id == flight_id)
+        return [job_out(j) for j in s.scalars(query)]
+
+
+def cancel_job(db: Database, job_id: int) -> JobOut:
+    """Mark the job cancelled; its running stage stops at its next progress report, the rest never start."""
+    with db.session() as s:
+        job = s.get(Job, job_id)
+        if job is None:
+            raise NotFoundError(f"job {job_id} not found")
+        if JobStatus(job.status).finished:
+            raise ConflictError(f"job {job_id} is already {job.status}")
+        job.status, job.progress_detail = JobStatus.cancelled.value, "cancelled by user"
+        return job_out(job)

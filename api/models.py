@@ -1,0 +1,87 @@
+"""Request and response schemas of the REST API."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class FlightCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=200)
+    description: str = Field("", max_length=5000)
+
+
+class GpsFix(BaseModel):
+    lat: float
+    lon: float
+    alt: float | None = None
+
+
+class ImageOut(BaseModel):
+    id: int
+    seq: int
+    filename: str
+    stored_name: str
+    size_bytes: int
+    width: int
+    height: int
+    gps: GpsFix | None = None
+    focal_length_mm: float | None = None
+    focal_length_35mm: float | None = None
+    yaw: float | None = None
+    pitch: float | None = None
+    roll: float | None = None
+
+
+class FlightOut(BaseModel):
+    id: int
+    name: str
+    description: str
+    created_at: datetime
+    image_count: int
+
+
+class FlightDetail(FlightOut):
+    images: list[ImageOut]
+
+
+class UploadResult(BaseModel):
+    images: list[ImageOut]
+
+
+class JobCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    flight_id: int
+    kind: Literal["mosaic"] = "mosaic"
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class JobOut(BaseModel):
+    id: int
+    flight_id: int
+    kind: str
+    status: str
+    stage: str
+    stages: list[str]
+    progress: float
+    progress_detail: str
+    timings: dict[str, float]
+    error: str
+    options: dict[str, Any]
+    created_at: datetime
+    updated_at: datetime
+
+
+class OutputOut(BaseModel):
+    name: str
+    size_bytes: int
+    url: str
+
+
+class OutputsOut(BaseModel):
+    outputs: list[OutputOut]

@@ -1,0 +1,87 @@
+"""Jobs: create, follow (JSON or Server-Sent Events), cancel, download outputs."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse, StreamingResponse
+
+from api import job_service
+from api.db import JobStatus
+from api.deps import DbDep, QueueDep, SettingsDep
+from api.errors import NotFoundError
+from api.models import JobCreate, JobOut, OutputOut, OutputsOut
+from workers.workspace import job_workspace
+
+router = APIRouter(prefix="/api/jobs", tags=["jobs"])
+
+MEDIA_TYPES = {".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
+               ".json": "application/json", ".geojson": "application/geo+json"}
+
+
+@router.post("", status_code=202, response_model=JobOut)
+def create_job(body: JobCreate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
+    """Queue a job on a flight; ``options`` override the pipeline defaults (see the MosaicConfig schema)."""
+    return job_service.create_job(db, settings, queue, body)
+
+
+@router.get("", response_model=list[JobOut])
+def list_jobs(db: DbDep, flight_id: int | None = None) -> list[JobOut]:
+    return job_service.list_jobs(db, flight_id)
+
+
+@router.get("/{job_id}", response_model=JobOut)
+def get_job(job_id: int, db: DbDep) -> JobOut:
+    return job_service.get_job(db, job_id)
+
+
+@router.post("/{job_id}/cancel", response_model=JobOut)
+def cancel_job(job_id: int, db: DbDep) -> JobOut:
+    return job_service.cancel_job(db, job_id)
+
+
+@router.get("/{job_id}/events")
+async def job_events(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> StreamingResponse:
+    """Server-Sent Events: ``progress`` with the job JSON at every change, then ``end`` when it finishes."""
+    job_service.get_job(db, job_id)  # 404 before the stream starts
+
+    async def stream() -> AsyncIterator[str]:
+        last = ""
+        while not await request.is_disconnected():
+            job = await asyncio.to_thread(job_service.get_job, db, job_id)
+            data = job.model_dump_json()
+            if JobStatus(job.status).finished:
+                yield f"event: end\ndata: {data}\n\n"
+                return
+            if data != last:
+                yield f"event: progress\ndata: {data}\n\n"
+                last = data
+            else:
+                yield ": keep-alive\n\n"
+            await asyncio.sleep(settings.sse_poll_seconds)
+
+    headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    return StreamingResponse(stream(), media_type="text/event-stream", headers=headers)
+
+
+@router.get("/{job_id}/outputs", response_model=OutputsOut)
+def list_outputs(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> OutputsOut:
+    job_service.get_job(db, job_id)
+    outputs = job_workspace(settings.data_dir, job_id).outputs()
+    return OutputsOut(outputs=[
+        OutputOut(name=name, size_bytes=path.stat().st_size,
+                  url=str(request.url_for("download_output", job_id=job_id, name=name)))
+        for name, path in outputs.items()])
+
+
+@router.get("/{job_id}/outputs/{name}", name="download_output")
+def download_output(job_id: int, name: str, db: DbDep, settings: SettingsDep) -> FileResponse:
+    """Download one output by its public name (never a path: only names listed by /outputs resolve)."""
+    job_service.get_job(db, job_id)
+    path = job_workspace(settings.data_dir, job_id).outputs().get(name)
+    if path is None:
+        raise NotFoundError(f"job {job_id} has no output named {name!r}")
+    return FileResponse(path, media_type=MEDIA_TYPES.get(path.suffix, "application/octet-stream"),
+                        filename=f"job{job_id}_{name}")

@@ -1,0 +1,123 @@
+"""Storing uploaded photos: stream each file to a temporary name inside the flight folder, validate
+it, and only when every file of the request is good, move them all into place and record them.
+A failed request leaves nothing behind."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fastapi import UploadFile
+from sqlalchemy import func, select
+from starlette.concurrency import run_in_threadpool
+
+from api.db import Database, Flight, Image
+from api.errors import ConflictError, InvalidInputError, NotFoundError, TooLargeError
+from api.settings import Settings
+from workers.image_meta import ImageLimits, InvalidImageError, inspect_image
+from workers.workspace import flight_folder
+
+CHUNK = 1024 * 1024
+EXTENSIONS = {"JPEG": "jpg", "MPO": "jpg", "PNG": "png", "TIFF": "tif"}
+
+
+@dataclass
+class StagedFile:
+    display_name: str
+    temp_path: Path
+    size: int
+    sha256: str
+    meta: dict[str, Any]
+
+
+def display_name(raw: str | None) -> str:
+    """The client's filename reduced to a harmless label: last path part, printable, 200 chars.
+
+    Used only for display; files are stored under server-chosen names.
+    """
+    base = re.split(r"[\\/]", raw or "")[-1]
+    cleaned = "".join(ch for ch in base if ch.isprintable()).strip(" .")
+    return cleaned[:200] or "unnamed"
+
+
+async def store_uploads(db: Database, settings: Settings, flight_id: int, files: list[UploadFile]) -> list[Image]:
+    """Validate and store ``files`` as images of flight ``flight_id``, all or none."""
+    with db.session() as s:
+        if s.get(Flight, flight_id) is None:
+            raise NotFoundError(f"flight {flight_id} not found")
+    if not files:
+        raise InvalidInputError("no files in the request (multipart field 'files')")
+    folder = flight_folder(settings.data_dir, flight_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    staged: list[StagedFile] = []
+    try:
+        for upload in files:
+            staged.append(await _stage(upload, folder, settings))
+        _refuse_duplicates(db, flight_id, staged)
+        return _commit(db, flight_id, folder, staged)
+    finally:
+        for item in staged:
+            item.temp_path.unlink(missing_ok=True)
+
+
+async def _stage(upload: UploadFile, folder: Path, settings: Settings) -> StagedFile:
+    name = display_name(upload.filename)
+    temp = folder / f".upload-{uuid.uuid4().hex}.part"
+    digest, size = hashlib.sha256(), 0
+    try:
+        with temp.open("wb") as out:
+            while chunk := await upload.read(CHUNK):
+                size += len(chunk)
+                if size > settings.max_upload_bytes:
+                    raise TooLargeError(f"{name}: file is larger than {settings.max_upload_bytes} bytes")
+                digest.update(chunk)
+                out.write(chunk)
+        limits = ImageLimits(settings.max_image_pixels, settings.max_image_side, settings.min_image_side)
+        meta = await run_in_threadpool(inspect_image, temp, limits)
+    except InvalidImageError as exc:
+        temp.unlink(missing_ok=True)
+        raise (TooLargeError if exc.too_large else InvalidInputError)(f"{name}: {exc}") from None
+    except BaseException:
+        temp.unlink(missing_ok=True)
+        raise
+    return StagedFile(name, temp, size, digest.hexdigest(), meta)
+
+
+def _refuse_duplicates(db: Database, flight_id: int, staged: list[StagedFile]) -> None:
+    seen: dict[str, str] = {}
+    with db.session() as s:
+        for name, sha in s.execute(select(Image.filename, Image.meta["sha256"].as_string())
+                                   .where(Image.flight_id == flight_id)):
+            seen[sha] = name
+    for item in staged:
+        if item.sha256 in seen:
+            raise ConflictError(f"{item.display_name}: the same photo is already in this flight as {seen[item.sha256]}")
+        seen[item.sha256] = item.display_name
+
+
+def _commit(db: Database, flight_id: int, folder: Path, staged: list[StagedFile]) -> list[Image]:
+    moved: list[Path] = []
+    try:
+        with db.session() as s:
+            seq = (s.scalar(select(func.max(Image.seq)).where(Image.flight_id == flight_id)) or 0) + 1
+            images = []
+            for n, item in enumerate(staged):
+                stored = f"{seq + n:05d}_{uuid.uuid4().hex[:8]}.{EXTENSIONS.get(item.meta['format'], 'img')}"
+                os.replace(item.temp_path, folder / stored)
+                moved.append(folder / stored)
+                image = Image(flight_id=flight_id, seq=seq + n, filename=item.display_name, stored_name=stored,
+                              size_bytes=item.size, width=item.meta["width"], height=item.meta["height"],
+                              meta={**item.meta, "sha256": item.sha256})
+                s.add(image)
+                images.append(image)
+            s.flush()
+            return images
+    except BaseException:
+        for path in moved:  # the records rolled back: take the files back out too
+            path.unlink(missing_ok=True)
+        raise

@@ -1,0 +1,143 @@
+"""Job lifecycle through the API with a recording queue, and the worker's record keeping in-process."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.db import Database
+from tests.conftest import RecordingQueue
+from tests.scenes import make_flight
+from workers.pipeline import stage_names
+from workers.tasks import execute_stage
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    return make_flight(tmp_path_factory.mktemp("frames"), n_frames=3, frame_size=(400, 300), seed=6).paths
+
+
+def flight_with(client: TestClient, paths: list[Path]) -> int:
+    flight_id = int(client.post("/api/flights", json={"name": "f"}).json()["id"])
+    if paths:
+        files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in paths]
+        assert client.post(f"/api/flights/{flight_id}/images", files=files).status_code == 201
+    return flight_id
+
+
+def test_job_is_recorded_written_and_enqueued(client: TestClient, api_settings, recording_queue: RecordingQueue,
+                                              frames: list[Path]) -> None:
+    flight_id = flight_with(client, frames)
+    response = client.post("/api/jobs", json={"flight_id": flight_id, "kind": "mosaic",
+                                              "options": {"working_max_px": 512}})
+    assert response.status_code == 202
+    job = response.json()
+    assert job["status"] == "queued" and job["stages"] == stage_names("mosaic")
+    assert recording_queue.sent == [(job["id"], "mosaic")]
+    workspace = api_settings.data_dir / "jobs" / str(job["id"])
+    assert (workspace / "config.json").exists() and (workspace / "inputs.json").exists()
+    assert client.get(f"/api/jobs/{job['id']}").json()["options"] == {"working_max_px": 512}
+    assert [j["id"] for j in client.get(f"/api/jobs?flight_id={flight_id}").json()] == [job["id"]]
+    assert client.get(f"/api/jobs/{job['id']}/outputs").json() == {"outputs": []}
+    assert client.get(f"/tiles/{job['id']}/tilejson.json").status_code == 409
+
+
+@pytest.mark.parametrize(("options", "fragment"), [
+    ({"ratio_test": "high"}, "options.ratio_test"),
+    ({"working_max_px": 10}, "options.working_max_px"),
+    ({"no_such_option": 1}, "options.no_such_option"),
+])
+def test_invalid_options_are_422_and_nothing_is_queued(client: TestClient, recording_queue: RecordingQueue,
+                                                       frames: list[Path], options: dict, fragment: str) -> None:
+    response = client.post("/api/jobs", json={"flight_id": flight_with(client, frames), "options": options})
+    assert response.status_code == 422 and fragment in response.json()["detail"]
+    assert recording_queue.sent == []
+
+
+def test_job_needs_a_known_flight_with_two_images(client: TestClient, frames: list[Path]) -> None:
+    assert client.post("/api/jobs", json={"flight_id": 404}).status_code == 404
+    response = client.post("/api/jobs", json={"flight_id": flight_with(client, frames[:1])})
+    assert response.status_code == 422 and "at least 2" in response.json()["detail"]
+    assert client.post("/api/jobs", json={"flight_id": 1, "kind": "panorama"}).status_code == 422
+    assert client.post("/api/jobs", json={"flight_id": "one"}).status_code == 422
+
+
+def test_unknown_job_ids_are_404(client: TestClient) -> None:
+    for path in ("/api/jobs/77", "/api/jobs/77/outputs", "/api/jobs/77/events", "/tiles/77/tilejson.json",
+                 "/tiles/77/1/0/0.png", "/api/jobs/77/outputs/mosaic.tif"):
+        response = client.get(path)
+        assert response.status_code == 404, path
+        assert "job 77 not found" in response.json()["detail"]
+    assert client.post("/api/jobs/77/cancel").status_code == 404
+
+
+def test_queue_down_is_503_and_the_job_is_marked_failed(client: TestClient, recording_queue: RecordingQueue,
+                                                        frames: list[Path]) -> None:
+    recording_queue.fail = True
+    response = client.post("/api/jobs", json={"flight_id": flight_with(client, frames)})
+    assert response.status_code == 503
+    job = client.get("/api/jobs").json()[0]
+    assert job["status"] == "failed" and "job queue" in job["error"]
+
+
+def test_cancel_then_cancel_again(client: TestClient, frames: list[Path]) -> None:
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames)}).json()
+    cancelled = client.post(f"/api/jobs/{job['id']}/cancel")
+    assert cancelled.status_code == 200 and cancelled.json()["status"] == "cancelled"
+    assert client.post(f"/api/jobs/{job['id']}/cancel").status_code == 409
+
+
+def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_settings, frames: list[Path]) -> None:
+    """The Celery tasks' body, in-process: the record advances stage by stage and ends succeeded."""
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames),
+                                         "options": {"working_max_px": 400}}).json()
+    db = Database(api_settings.resolved_database_url())
+    progress = []
+    for stage in job["stages"]:
+        status = execute_stage(job["id"], stage, db=db, data_dir=api_settings.data_dir)
+        record = client.get(f"/api/jobs/{job['id']}").json()
+        progress.append(record["progress"])
+        assert record["stage"] == stage and stage in record["timings"]
+    assert status == "succeeded" and progress == sorted(progress) and progress[-1] == 100
+    names = {o["name"] for o in client.get(f"/api/jobs/{job['id']}/outputs").json()["outputs"]}
+    assert names == {"mosaic.tif", "report.json", "footprints.geojson"}
+    cog = client.get(f"/api/jobs/{job['id']}/outputs/mosaic.tif")
+    assert cog.status_code == 200 and cog.content[:4] in (b"II*\x00", b"II+\x00")
+    assert client.get(f"/api/jobs/{job['id']}/outputs/config.json").status_code == 404  # only named outputs
+    tilejson = client.get(f"/tiles/{job['id']}/tilejson.json").json()
+    assert tilejson["georeferenced"] and tilejson["tiles"][0].endswith(f"/tiles/{job['id']}/{{z}}/{{x}}/{{y}}.png")
+
+
+def test_worker_skips_a_cancelled_job(client: TestClient, api_settings, frames: list[Path]) -> None:
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames)}).json()
+    db = Database(api_settings.resolved_database_url())
+    assert execute_stage(job["id"], "load_images", db=db, data_dir=api_settings.data_dir) == "running"
+    client.post(f"/api/jobs/{job['id']}/cancel")
+    assert execute_stage(job["id"], "detect_features", db=db, data_dir=api_settings.data_dir) == "cancelled"
+    record = client.get(f"/api/jobs/{job['id']}").json()
+    assert record["status"] == "cancelled" and "detect_features" not in record["timings"]
+    assert not (api_settings.data_dir / "jobs" / str(job["id"]) / "features").exists()
+
+
+def test_worker_records_a_pipeline_error(client: TestClient, api_settings, frames: list[Path], tmp_path: Path) -> None:
+    """Two frames that do not overlap: the job fails with a message a user can act on."""
+    far_apart = make_flight(tmp_path, n_frames=2, frame_size=(400, 300), overlap=0.0, seed=8).paths
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, far_apart)}).json()
+    db = Database(api_settings.resolved_database_url())
+    with pytest.raises(Exception, match="no two frames overlap"):
+        for stage in job["stages"]:
+            execute_stage(job["id"], stage, db=db, data_dir=api_settings.data_dir)
+    record = client.get(f"/api/jobs/{job['id']}").json()
+    assert record["status"] == "failed" and record["error"].startswith("align_frames: no two frames overlap")
+
+
+def test_docs_render_offline(client: TestClient) -> None:
+    html = client.get("/docs").text
+    assert "/vendor/swagger-ui/swagger-ui-bundle.js" in html and "cdn" not in html.lower()
+    assert client.get("/vendor/swagger-ui/swagger-ui-bundle.js").status_code == 200
+    assert client.get("/vendor/leaflet/leaflet.js").status_code == 200
+    assert client.get("/openapi.json").json()["info"]["title"] == "Fotoskhema"
+    assert client.get("/api/health").json()["status"] == "ok"
+    assert client.get("/api/config").json() == {"basemap_url": ""}

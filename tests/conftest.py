@@ -1,0 +1,122 @@
+"""Shared fixtures: an API app over a temporary data dir with a recording queue, and a live stack
+(real Redis server, real Celery worker process, real uvicorn server) for end-to-end tests."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def shared_data(name: str) -> Path:
+    """A folder of ../shared/data, or skip the test saying why."""
+    path = SHARED_DATA / name
+    if not path.is_dir():
+        pytest.skip(f"real data {path} is absent (see shared/data/MANIFEST.md)")
+    return path
+
+
+@dataclass
+class RecordingQueue:
+    """Stands in for Celery in API tests: records what would be sent, in order."""
+
+    sent: list[tuple[int, str]] = field(default_factory=list)
+    fail: bool = False
+
+    def enqueue(self, job_id: int, kind: str) -> str:
+        if self.fail:
+            raise ConnectionError("broker unreachable")
+        self.sent.append((job_id, kind))
+        return f"recorded-{job_id}"
+
+
+@pytest.fixture
+def api_settings(tmp_path: Path):
+    from api.settings import Settings
+
+    return Settings(data_dir=tmp_path / "data", database_url="", redis_url="redis://127.0.0.1:1/0")
+
+
+@pytest.fixture
+def recording_queue() -> RecordingQueue:
+    return RecordingQueue()
+
+
+@pytest.fixture
+def client(api_settings, recording_queue):
+    from fastapi.testclient import TestClient
+
+    from api.main import create_app
+
+    with TestClient(create_app(api_settings, queue=recording_queue)) as test_client:
+        yield test_client
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass
+class LiveService:
+    url: str
+    data_dir: Path
+    redis_url: str
+    logs: Path
+
+    def wait_for_job(self, job_id: int, timeout: float = 240.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            job = httpx.get(f"{self.url}/api/jobs/{job_id}", timeout=10).json()
+            if job["status"] in ("succeeded", "failed", "cancelled"):
+                return job
+            time.sleep(0.5)
+        raise AssertionError(f"job {job_id} still {job['status']} after {timeout} s; logs in {self.logs}")
+
+
+@pytest.fixture(scope="session")
+def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
+    """Redis + Celery worker + uvicorn, as separate processes, on free local ports."""
+    from api.services import find_redis_server, start_redis, stop, wait_for_port
+
+    try:
+        find_redis_server()
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
+    root = tmp_path_factory.mktemp("live")
+    data_dir, logs = root / "data", root / "logs"
+    logs.mkdir()
+    redis_url = f"redis://127.0.0.1:{free_port()}/0"
+    env = {**os.environ, "FOTOSKHEMA_DATA_DIR": str(data_dir), "FOTOSKHEMA_REDIS_URL": redis_url,
+           "FOTOSKHEMA_DATABASE_URL": "", "FOTOSKHEMA_CELERY_QUEUE": "cpu", "PYTHONUNBUFFERED": "1"}
+    env.pop("DATABASE_URL", None)
+    env.pop("REDIS_URL", None)
+    port = free_port()
+    procs: list[subprocess.Popen[bytes] | None] = [start_redis(redis_url, root / "redis")]
+    try:
+        procs.append(_spawn([sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "cpu,gpu",
+                             "--concurrency", "1", "--loglevel", "INFO", "--without-gossip", "--without-mingle"],
+                            env, logs / "worker.log"))
+        server = _spawn([sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--host", "127.0.0.1",
+                         "--port", str(port)], env, logs / "api.log")
+        procs.append(server)
+        wait_for_port("127.0.0.1", port, 60, server)
+        yield LiveService(f"http://127.0.0.1:{port}", data_dir, redis_url, logs)
+    finally:
+        stop(list(reversed(procs)))
+
+
+def _spawn(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(cmd, env=env, cwd=REPO, stdout=log.open("wb"), stderr=subprocess.STDOUT)

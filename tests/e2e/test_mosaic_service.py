@@ -1,0 +1,119 @@
+"""End to end: real Redis, real Celery worker process, real uvicorn; a flight goes in over HTTP and a
+georeferenced COG and tiles come out."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import rasterio
+from PIL import Image
+
+from tests.conftest import LiveService, shared_data
+from tests.scenes import make_flight
+
+pytestmark = pytest.mark.e2e
+
+
+def upload_flight(service: LiveService, name: str, paths: list[Path]) -> int:
+    flight = httpx.post(f"{service.url}/api/flights", json={"name": name}, timeout=10).json()
+    files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in paths]
+    response = httpx.post(f"{service.url}/api/flights/{flight['id']}/images", files=files, timeout=120)
+    assert response.status_code == 201, response.text
+    assert len(response.json()["images"]) == len(paths)
+    return int(flight["id"])
+
+
+def run_job(service: LiveService, flight_id: int, options: dict | None = None) -> dict:
+    response = httpx.post(f"{service.url}/api/jobs", json={"flight_id": flight_id, "kind": "mosaic",
+                                                           "options": options or {}}, timeout=10)
+    assert response.status_code == 202, response.text
+    job = service.wait_for_job(response.json()["id"])
+    assert job["status"] == "succeeded", f"{job['error']} (logs in {service.logs})"
+    return job
+
+
+def download(service: LiveService, job_id: int, name: str, to: Path) -> Path:
+    outputs = httpx.get(f"{service.url}/api/jobs/{job_id}/outputs", timeout=10).json()["outputs"]
+    url = next(o["url"] for o in outputs if o["name"] == name)
+    to.write_bytes(httpx.get(url, timeout=60).content)
+    return to
+
+
+def test_synthetic_flight_becomes_cog_and_tiles(live_service: LiveService, tmp_path: Path) -> None:
+    flight = make_flight(tmp_path / "flight", n_frames=6, frame_size=(640, 480), seed=3)
+    job = run_job(live_service, upload_flight(live_service, "synthetic", flight.paths), {"working_max_px": 640})
+    assert job["progress"] == 100 and set(job["timings"]) == set(job["stages"])
+
+    cog = download(live_service, job["id"], "mosaic.tif", tmp_path / "mosaic.tif")
+    with rasterio.open(cog) as src:
+        assert src.crs.to_epsg() == flight.epsg
+        assert src.count == 3 and src.overviews(1), "COG must have overviews"
+        assert src.mask_flag_enums[0] == [rasterio.enums.MaskFlags.per_dataset]
+        assert abs(src.transform.a - flight.gsd_m) < 0.1 * flight.gsd_m  # frames are at ~1 texture px per px
+        mask = src.dataset_mask()
+        assert 0.3 < (mask > 0).mean() < 1.0  # data inside, transparent corners outside
+
+    tilejson = httpx.get(f"{live_service.url}/tiles/{job['id']}/tilejson.json", timeout=10).json()
+    assert tilejson["georeferenced"] is True
+    west, south, east, north = tilejson["bounds"]
+    for lat, lon, _ in flight.gps:
+        assert west < lon < east and south < lat < north
+    z = tilejson["maxzoom"]
+    x, y = _tile_of(tilejson["center"][0], tilejson["center"][1], z)
+    response = httpx.get(tilejson["tiles"][0].format(z=z, x=x, y=y), timeout=30)
+    assert response.status_code == 200 and response.headers["content-type"] == "image/png"
+    tile = np.asarray(Image.open(io.BytesIO(response.content)).convert("RGBA"))
+    assert tile.shape == (256, 256, 4)
+    assert (tile[..., 3] > 0).mean() > 0.5 and tile[..., :3][tile[..., 3] > 0].std() > 10  # textured mosaic
+    far = httpx.get(f"{live_service.url}/tiles/{job['id']}/{z}/0/0.png", timeout=10)
+    assert far.status_code == 404
+
+
+def test_event_stream_reports_progress_until_the_end(live_service: LiveService, tmp_path: Path) -> None:
+    flight = make_flight(tmp_path / "flight", n_frames=4, frame_size=(480, 360), seed=5)
+    flight_id = upload_flight(live_service, "sse", flight.paths)
+    job = httpx.post(f"{live_service.url}/api/jobs", json={"flight_id": flight_id}, timeout=10).json()
+    events = []
+    with httpx.stream("GET", f"{live_service.url}/api/jobs/{job['id']}/events", timeout=240) as stream:
+        event = ""
+        for line in stream.iter_lines():
+            if line.startswith("event: "):
+                event = line[7:]
+            elif line.startswith("data: "):
+                events.append((event, json.loads(line[6:])))
+    assert events[-1][0] == "end" and events[-1][1]["status"] == "succeeded"
+    progress = [data["progress"] for _, data in events]
+    assert progress == sorted(progress), "progress never goes backwards"
+    assert len({data["stage"] for _, data in events}) >= 3  # stages were reported as they advanced
+
+
+def test_brighton_real_flight(live_service: LiveService, tmp_path: Path) -> None:
+    folder = shared_data("drone_brighton_strip1")
+    paths = sorted(folder.glob("*.JPG"))
+    job = run_job(live_service, upload_flight(live_service, "brighton", paths))
+    report = json.loads(download(live_service, job["id"], "report.json", tmp_path / "report.json").read_text())
+    assert report["tie_point_rms_px"] < 1.0
+    assert len(report["frames_used"]) == 6 and not report["frames_rejected"]
+    cog = download(live_service, job["id"], "mosaic.tif", tmp_path / "mosaic.tif")
+    with rasterio.open(cog) as src:
+        assert src.crs.to_epsg() == 32615
+        from pyproj import Transformer
+
+        to_utm = Transformer.from_crs(4326, 32615, always_xy=True)
+        mask = src.dataset_mask()
+        for frame in report["frames_used"]:
+            e, n = to_utm.transform(frame["gps"]["lon"], frame["gps"]["lat"])
+            row, col = src.index(e, n)
+            assert 0 <= row < src.height and 0 <= col < src.width and mask[row, col] > 0, frame["name"]
+
+
+def _tile_of(lon: float, lat: float, z: int) -> tuple[int, int]:
+    n = 2**z
+    x = int((lon + 180.0) / 360.0 * n)
+    y = int((1.0 - np.arcsinh(np.tan(np.radians(lat))) / np.pi) / 2.0 * n)
+    return x, y

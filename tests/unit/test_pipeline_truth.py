@@ -1,0 +1,123 @@
+"""The whole mosaic pipeline on synthetic flights with known homographies and georeference."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+
+from tests.scenes import SyntheticFlight, make_flight
+from workers.algorithms.alignment import apply_homography
+from workers.algorithms.georef import fit_similarity
+from workers.pipeline import process_directory
+from workers.workspace import JobWorkspace, read_json
+
+
+def frame_corners_cv(flight: SyntheticFlight) -> np.ndarray:
+    w, h = flight.frame_size
+    return np.array([[0, 0], [w, 0], [w, h], [0, h]], float) - 0.5
+
+
+@pytest.fixture(scope="module")
+def tilted(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, dict, JobWorkspace]:
+    """Two flight lines, rotated, rescaled, mildly tilted frames, no GPS: exhaustive matching."""
+    root = tmp_path_factory.mktemp("tilted")
+    flight = make_flight(root / "frames", n_frames=10, layout="grid", rotation_deg=12, scale_jitter=0.08,
+                         perspective=0.03, gps=False, seed=11)
+    report = process_directory(root / "frames", root / "job", {"working_max_px": 1024})
+    return flight, report, JobWorkspace(root / "job")
+
+
+def test_frame_corners_within_one_pixel_of_truth(tilted) -> None:
+    flight, report, ws = tilted
+    align = read_json(ws.alignment_file())
+    homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
+    assert sorted(homs) == list(range(10)) and not report["frames_rejected"]
+    # The mosaic plane is the reference frame's; the truth in that plane is inv(G_ref) @ G_k.
+    ref = np.linalg.inv(flight.homographies[align["reference"]])
+    corners = frame_corners_cv(flight)
+    predicted = np.concatenate([apply_homography(homs[k], corners) for k in sorted(homs)])
+    truth = np.concatenate([apply_homography(ref @ flight.homographies[k], corners) for k in sorted(homs)])
+    S = fit_similarity(predicted, truth)  # remove the global similarity (gauge freedom)
+    errors = np.linalg.norm(apply_homography(S, predicted) - truth, axis=1)
+    assert errors.max() < 1.0, f"worst corner {errors.max():.3f} px"
+
+
+def test_tie_point_rms_under_half_a_pixel(tilted) -> None:
+    _, report, _ = tilted
+    assert report["tie_point_rms_px"] < 0.5
+    assert report["georeferenced"] is False and "GPS" in report["georeference_note"]
+    accepted = [p for p in report["pairs"] if p["accepted"]]
+    assert len(accepted) >= 9 and all(p["inliers"] >= 25 for p in accepted)
+
+
+def test_mosaic_without_gps_is_a_pixel_raster(tilted) -> None:
+    _, report, ws = tilted
+    with rasterio.open(ws.mosaic_file()) as src:
+        assert src.crs is None
+        assert (src.width, src.height) == (report["mosaic"]["width"], report["mosaic"]["height"])
+        assert src.overviews(1)
+    assert not ws.footprints_file().exists()  # no map coordinates to draw footprints in
+
+
+@pytest.fixture(scope="module")
+def nadir(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, dict, JobWorkspace]:
+    root = tmp_path_factory.mktemp("nadir")
+    flight = make_flight(root / "frames", n_frames=8, rotation_deg=10, scale_jitter=0.05, gps=True, seed=4)
+    report = process_directory(root / "frames", root / "job", {"working_max_px": 1024})
+    return flight, report, JobWorkspace(root / "job")
+
+
+def test_gps_flight_is_placed_within_one_gsd(nadir) -> None:
+    flight, report, ws = nadir
+    assert report["georeferenced"] and report["crs"] == f"EPSG:{flight.epsg}"
+    geo, align = read_json(ws.georef_file()), read_json(ws.alignment_file())
+    plane_to_map = np.array(geo["plane_to_map"])
+    errors = []
+    for k, H in align["homographies"].items():
+        corners = frame_corners_cv(flight)
+        predicted = apply_homography(plane_to_map @ np.array(H), corners)
+        truth = apply_homography(flight.texture_to_utm @ flight.homographies[int(k)], corners)
+        errors.append(np.linalg.norm(predicted - truth, axis=1))
+    worst = float(np.max(errors))
+    assert worst < flight.gsd_m, f"worst corner {worst:.4f} m, GSD {flight.gsd_m} m"
+    ref = flight.homographies[align["reference"]]  # the plane has the reference frame's scale
+    assert abs(report["gsd_m"] - flight.gsd_m * np.sqrt(abs(np.linalg.det(ref[:2, :2])))) < 0.01 * flight.gsd_m
+
+
+def test_cog_pixels_show_the_ground_at_their_map_position(nadir) -> None:
+    """Every mosaic pixel, taken to the texture through its map coordinates, shows the same colour."""
+    flight, _, ws = nadir
+    with rasterio.open(ws.mosaic_file()) as src:
+        rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
+        mask = src.dataset_mask() > 0
+        rows, cols = np.mgrid[0:src.height, 0:src.width]
+        east, north = rasterio.transform.xy(src.transform, rows.ravel(), cols.ravel())
+    en = np.column_stack([east, north, np.ones(len(east))])
+    tex = en @ np.linalg.inv(flight.texture_to_utm).T
+    mx = tex[:, 0].reshape(rows.shape).astype(np.float32)
+    my = tex[:, 1].reshape(rows.shape).astype(np.float32)
+    expected = cv2.remap(flight.texture, mx, my, cv2.INTER_LINEAR)[..., ::-1].astype(np.float32)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    diff = np.abs(rgb - expected)[inner].mean()
+    assert inner.mean() > 0.3
+    assert diff < 10.0, f"mean colour difference {diff:.1f} levels: mosaic misplaced or blurred"
+
+
+def test_report_lists_what_a_user_needs(nadir) -> None:
+    flight, report, ws = nadir
+    on_disk = json.loads(ws.report_file().read_text())
+    assert on_disk == json.loads(json.dumps(report))
+    assert len(report["frames_used"]) == 8 and report["frames_rejected"] == []
+    assert set(report["stage_seconds"]) >= {"load_images", "detect_features", "match_features",
+                                             "align_frames", "georeference", "compose_mosaic"}
+    footprint = report["mosaic"]["footprint"]
+    assert footprint["type"] == "MultiPolygon" and footprint["coordinates"]
+    lon, lat = np.array(footprint["coordinates"][0][0]).T
+    for glat, glon, _ in flight.gps:
+        assert lon.min() < glon < lon.max() and lat.min() < glat < lat.max()
+    features = json.loads(ws.footprints_file().read_text())["features"]
+    assert [f["properties"]["name"] for f in features] == [p.name for p in flight.paths]

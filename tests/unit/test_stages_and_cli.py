@@ -1,0 +1,51 @@
+"""Stage bookkeeping (idempotency, reports) and the command line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from api.cli import build_parser, main
+from tests.scenes import make_flight
+from workers.pipeline import overall_progress, process_directory, run_stage, stage_names
+from workers.workspace import JobWorkspace
+
+
+def test_progress_is_weighted_and_monotonic() -> None:
+    values = [overall_progress("mosaic", s, f) for s in stage_names("mosaic") for f in (0.0, 0.5, 1.0)]
+    assert values[0] == 0.0 and values[-1] == 100.0 and values == sorted(values)
+    with pytest.raises(ValueError):
+        overall_progress("mosaic", "no_such_stage", 0.0)
+
+
+def test_a_finished_stage_is_not_run_again(tmp_path: Path) -> None:
+    make_flight(tmp_path / "frames", n_frames=3, frame_size=(320, 240), seed=1)
+    process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 320})
+    ws = JobWorkspace(tmp_path / "job")
+    mtime = ws.mosaic_file().stat().st_mtime_ns
+    report = run_stage(ws, "mosaic", "compose_mosaic")
+    assert ws.mosaic_file().stat().st_mtime_ns == mtime and report == ws.load_stage_report("compose_mosaic")
+    rerun = run_stage(ws, "mosaic", "compose_mosaic", rerun=True)
+    assert ws.mosaic_file().stat().st_mtime_ns != mtime and rerun["width"] == report["width"]
+    assert not list(ws.root.rglob(".*.tmp")) and not (ws.root / "mosaic.tmp.tif").exists()
+
+
+def test_cli_lists_subcommands_and_processes_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    choices = next(a for a in build_parser()._actions if a.dest == "command").choices
+    assert {"up", "serve", "worker", "process"} <= set(choices)
+    make_flight(tmp_path / "frames", n_frames=3, frame_size=(320, 240), seed=2)
+    assert main(["process", str(tmp_path / "frames"), "-o", str(tmp_path / "out"), "--set", "working_max_px=320"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames_used"] == 3 and summary["crs"] == "EPSG:32615"
+    assert (tmp_path / "out" / "mosaic.tif").exists() and (tmp_path / "out" / "report.json").exists()
+
+
+def test_cli_explains_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty").mkdir()
+    assert main(["process", str(tmp_path / "empty"), "-o", str(tmp_path / "out")]) == 1
+    assert "at least 2" in capsys.readouterr().err
+    make_flight(tmp_path / "frames", n_frames=2, frame_size=(320, 240), seed=2)
+    assert main(["process", str(tmp_path / "frames"), "-o", str(tmp_path / "o2"), "--set", "ratio_test=2"]) == 1
+    assert "ratio_test" in capsys.readouterr().err

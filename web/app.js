@@ -1,0 +1,68 @@
+/* Fotoskhema viewer: flights, photo uploads, live job progress and the mosaic on a Leaflet map.
+ *
+ * Vanilla JS with no build step. Routing is by hash (#/, #/flights/3, #/jobs/7). Every view renders
+ * into #app and registers cleanups (event stream, map, timers, upload) that run when the route
+ * changes; after each await a view checks `view.alive` so a slow answer never draws over the next page.
+ * The pages are ES modules (flights.js, flight.js, job.js, result-map.js over lib.js); Leaflet is the
+ * classic script loaded before them and used as the global `L`.
+ */
+
+import { ApiError, h, messageOf } from "./lib.js";
+import { renderFlightList } from "./flights.js";
+import { renderFlight } from "./flight.js";
+import { renderJob } from "./job.js";
+
+// -- Router --------------------------------------------------------------------------------------
+
+const routes = [
+  [/^#?\/?$/, (view, root) => renderFlightList(view, root)],
+  [/^#\/flights\/(\d+)$/, (view, root, m) => renderFlight(view, root, Number(m[1]))],
+  [/^#\/jobs\/(\d+)$/, (view, root, m) => renderJob(view, root, Number(m[1]))],
+];
+let currentView = null;
+
+function dispose(view) {
+  view.alive = false;
+  for (const cleanup of view.cleanups.splice(0).reverse()) {
+    try {
+      cleanup();
+    } catch (err) {
+      console.warn("cleanup failed", err);
+    }
+  }
+}
+
+function route() {
+  if (currentView) dispose(currentView);
+  const view = { alive: true, cleanups: [] };
+  currentView = view;
+  const root = document.getElementById("app");
+  root.replaceChildren();
+  const hash = window.location.hash || "#/";
+  for (const [pattern, render] of routes) {
+    const match = hash.match(pattern);
+    if (match) {
+      Promise.resolve(render(view, root, match)).catch((err) => {
+        if (view.alive) renderProblem(root, err);
+      });
+      return;
+    }
+  }
+  renderProblem(root, new ApiError(404, `No page at ${hash}.`));
+}
+
+function renderProblem(root, err) {
+  document.title = "Problem · Fotoskhema";
+  root.replaceChildren(
+    h(
+      "section",
+      { class: "card narrow" },
+      h("h1", {}, err instanceof ApiError && err.status === 404 ? "Not found" : "Something went wrong"),
+      h("p", { class: "alert error", role: "alert" }, messageOf(err)),
+      h("p", {}, h("a", { href: "#/" }, "Back to the flights")),
+    ),
+  );
+}
+
+window.addEventListener("hashchange", route);
+route();

@@ -1,0 +1,288 @@
+/* Flight page (#/flights/<id>): upload photos (drag and drop or file input), their metadata, its jobs. */
+
+import {
+  ACTIVE,
+  api,
+  breadcrumb,
+  detailOf,
+  formatBytes,
+  formatDate,
+  h,
+  humanize,
+  messageOf,
+  parseJson,
+  progressBar,
+  statusBadge,
+} from "./lib.js";
+
+const JOB_POLL_MS = 3000; // how often the job list refreshes while a job is active
+
+// -- Flight page ---------------------------------------------------------------------------------
+
+export async function renderFlight(view, root, flightId) {
+  const flight = await api("GET", `/api/flights/${flightId}`);
+  if (!view.alive) return;
+  document.title = `${flight.name} · Fotoskhema`;
+  let images = flight.images || [];
+
+  const countText = h("span", {});
+  const imagesBody = h("div", { class: "card-body" });
+  const jobs = jobsPanel(view, flightId);
+  function showImages() {
+    countText.textContent = `${images.length} photo${images.length === 1 ? "" : "s"}`;
+    imagesBody.replaceChildren(imageTable(images));
+    jobs.setImageCount(images.length);
+  }
+  const upload = uploadPanel(view, flightId, (added) => {
+    images = images.concat(added);
+    showImages();
+  });
+
+  root.append(
+    breadcrumb(["Flights", "#/"], [flight.name]),
+    h(
+      "div",
+      { class: "page-head" },
+      h("h1", {}, flight.name),
+      flight.description ? h("p", { class: "lead" }, flight.description) : null,
+      h("p", { class: "muted small" }, `Created ${formatDate(flight.created_at)} · `, countText),
+    ),
+    h(
+      "div",
+      { class: "layout sidebar-right" },
+      h(
+        "div",
+        { class: "stack" },
+        upload,
+        h("section", { class: "card", "aria-labelledby": "images-heading" }, h("h2", { id: "images-heading" }, "Photos"), imagesBody),
+      ),
+      jobs.node,
+    ),
+  );
+  showImages();
+  await jobs.refresh();
+}
+
+function uploadPanel(view, flightId, onUploaded) {
+  const input = h("input", {
+    id: "file-input", type: "file", multiple: true, accept: "image/*,.jpg,.jpeg,.tif,.tiff",
+    class: "visually-hidden", "data-testid": "file-input",
+  });
+  const bar = progressBar("Upload progress", { "data-testid": "upload-progress" });
+  bar.node.hidden = true; // shown from the first upload on
+  const status = h("p", { class: "upload-status", role: "status", "aria-live": "polite" });
+  const zone = h(
+    "div",
+    { class: "drop-zone", "data-testid": "drop-zone" },
+    h("div", { class: "drop-icon", "aria-hidden": "true" }),
+    h("p", { class: "drop-title" }, "Drag photos here"),
+    h("p", { class: "muted" }, "or ", h("label", { for: "file-input", class: "btn small" }, "Choose photos…")),
+    input,
+    h("p", { class: "muted small" }, "JPEG or TIFF frames, with EXIF GPS for a georeferenced map. Several files per upload."),
+  );
+  let xhr = null;
+  view.cleanups.push(() => xhr && xhr.abort());
+
+  function finish() {
+    xhr = null;
+    zone.classList.remove("busy");
+    input.disabled = false;
+    input.value = "";
+  }
+  function upload(fileList) {
+    const files = Array.from(fileList || []);
+    if (!files.length || xhr) return;
+    const form = new FormData();
+    for (const file of files) form.append("files", file, file.name);
+    const label = `${files.length} photo${files.length === 1 ? "" : "s"}`;
+    const totalBytes = files.reduce((sum, f) => sum + f.size, 0);
+    zone.classList.add("busy");
+    input.disabled = true;
+    bar.node.hidden = false;
+    bar.tone("");
+    bar.set(0);
+    status.className = "upload-status";
+    status.textContent = `Uploading ${label} (${formatBytes(totalBytes)})…`;
+
+    xhr = new XMLHttpRequest();
+    xhr.open("POST", `/api/flights/${flightId}/images`);
+    xhr.setRequestHeader("Accept", "application/json");
+    xhr.upload.onprogress = (event) => {
+      if (!event.lengthComputable) return bar.set(null);
+      const percent = (event.loaded / event.total) * 100;
+      bar.set(percent);
+      status.textContent = `Uploading ${label}… ${Math.round(percent)} %`;
+    };
+    xhr.upload.onload = () => {
+      bar.set(100);
+      status.textContent = `Reading metadata of ${label}…`;
+    };
+    xhr.onload = () => {
+      const request = xhr;
+      const data = parseJson(request.responseText);
+      finish();
+      if (request.status >= 200 && request.status < 300 && data && Array.isArray(data.images)) {
+        bar.tone("done");
+        status.textContent = `Uploaded ${data.images.length} photo${data.images.length === 1 ? "" : "s"}.`;
+        onUploaded(data.images);
+      } else {
+        bar.tone("error");
+        status.className = "upload-status error";
+        status.textContent = `Upload failed, nothing was stored: ${detailOf(data, request.status, request.statusText)}`;
+      }
+    };
+    xhr.onerror = () => {
+      finish();
+      bar.tone("error");
+      status.className = "upload-status error";
+      status.textContent = "Upload failed: the server could not be reached.";
+    };
+    xhr.send(form);
+  }
+
+  input.addEventListener("change", () => upload(input.files));
+  for (const type of ["dragenter", "dragover"]) {
+    zone.addEventListener(type, (event) => {
+      event.preventDefault();
+      if (event.dataTransfer) event.dataTransfer.dropEffect = "copy";
+      zone.classList.add("dragging");
+    });
+  }
+  zone.addEventListener("dragleave", (event) => {
+    if (!zone.contains(event.relatedTarget)) zone.classList.remove("dragging");
+  });
+  zone.addEventListener("drop", (event) => {
+    event.preventDefault();
+    zone.classList.remove("dragging");
+    upload(event.dataTransfer && event.dataTransfer.files);
+  });
+
+  return h(
+    "section",
+    { class: "card", "aria-labelledby": "upload-heading" },
+    h("h2", { id: "upload-heading" }, "Upload photos"),
+    zone,
+    h("div", { class: "upload-progress" }, bar.node, status),
+  );
+}
+
+function imageTable(images) {
+  if (!images.length) return h("p", { class: "empty" }, "No photos yet.");
+  const rows = images.map((img, i) => {
+    const gps = img.gps;
+    return h(
+      "tr",
+      { "data-testid": "image-row" },
+      h("td", { class: "num muted" }, String(i + 1)),
+      h("td", { class: "filename", title: img.filename }, img.filename),
+      h("td", { class: "num nowrap" }, formatBytes(img.size_bytes)),
+      h("td", { class: "num nowrap" }, `${img.width} × ${img.height}`),
+      h(
+        "td",
+        { class: "nowrap" },
+        gps ? [h("span", { class: "tag yes" }, "GPS"), " ", h("span", { class: "muted small" }, gpsText(gps))]
+          : h("span", { class: "tag no" }, "no GPS"),
+      ),
+      h("td", { class: "num nowrap" }, img.focal_length_mm != null ? `${img.focal_length_mm.toFixed(1)} mm` : "–"),
+    );
+  });
+  const withGps = images.filter((img) => img.gps).length;
+  return h(
+    "div",
+    { class: "table-scroll" },
+    h(
+      "table",
+      { class: "table compact", "data-testid": "image-list" },
+      h("caption", { class: "visually-hidden" }, "Uploaded photos"),
+      h(
+        "thead",
+        {},
+        h("tr", {}, h("th", { scope: "col", class: "num" }, "#"), h("th", { scope: "col" }, "File"),
+          h("th", { scope: "col", class: "num" }, "Size"), h("th", { scope: "col", class: "num" }, "Pixels"),
+          h("th", { scope: "col" }, "GPS"), h("th", { scope: "col", class: "num" }, "Focal length")),
+      ),
+      h("tbody", {}, rows),
+    ),
+    h("p", { class: "muted small" }, `${withGps} of ${images.length} with GPS.`),
+  );
+}
+
+function gpsText(gps) {
+  const alt = typeof gps.alt === "number" ? ` · ${gps.alt.toFixed(0)} m` : "";
+  return `${gps.lat.toFixed(5)}, ${gps.lon.toFixed(5)}${alt}`;
+}
+
+function jobsPanel(view, flightId) {
+  const hint = h("p", { id: "start-hint", class: "muted small" });
+  const error = h("p", { class: "form-error", role: "alert" });
+  const list = h("div", { class: "job-list" }, h("p", { class: "muted" }, "Loading jobs…"));
+  const start = h("button", { type: "button", class: "btn primary", "data-testid": "start-job", "aria-describedby": "start-hint", disabled: true },
+    "Start mosaic");
+  let timer = null;
+  view.cleanups.push(() => clearTimeout(timer));
+
+  start.addEventListener("click", async () => {
+    start.disabled = true;
+    error.textContent = "";
+    try {
+      const job = await api("POST", "/api/jobs", { flight_id: flightId, kind: "mosaic", options: {} });
+      window.location.hash = `#/jobs/${job.id}`;
+    } catch (err) {
+      error.textContent = messageOf(err);
+      start.disabled = false;
+    }
+  });
+
+  async function refresh() {
+    clearTimeout(timer);
+    let jobs;
+    try {
+      jobs = await api("GET", `/api/jobs?flight_id=${flightId}`);
+    } catch (err) {
+      if (view.alive) list.replaceChildren(h("p", { class: "form-error" }, messageOf(err)));
+      return;
+    }
+    if (!view.alive) return;
+    list.replaceChildren(jobItems(jobs));
+    if (jobs.some((job) => ACTIVE.has(job.status))) timer = setTimeout(refresh, JOB_POLL_MS);
+  }
+
+  function setImageCount(count) {
+    start.disabled = count < 2;
+    hint.textContent = count < 2
+      ? "Upload at least 2 overlapping photos to start a mosaic."
+      : `Mosaic all ${count} photos into one map.`;
+  }
+
+  const node = h(
+    "section",
+    { class: "card", "aria-labelledby": "jobs-heading" },
+    h("h2", { id: "jobs-heading" }, "Jobs"),
+    h("div", { class: "start-row" }, start, hint),
+    error,
+    list,
+  );
+  return { node, refresh, setImageCount };
+}
+
+function jobItems(jobs) {
+  if (!jobs.length) return h("p", { class: "empty" }, "No jobs yet.");
+  const items = jobs
+    .slice()
+    .sort((a, b) => b.id - a.id)
+    .map((job) =>
+      h(
+        "li",
+        {},
+        h(
+          "a",
+          { href: `#/jobs/${job.id}`, class: "job-item", "data-testid": "job-item" },
+          h("span", { class: "job-title" }, `${humanize(job.kind)} #${job.id}`),
+          statusBadge(job.status),
+          h("span", { class: "muted small job-when" },
+            ACTIVE.has(job.status) ? `${Math.round(job.progress || 0)} % · ${humanize(job.stage) || "waiting"}` : formatDate(job.created_at)),
+        ),
+      ),
+    );
+  return h("ul", { class: "plain" }, items);
+}

@@ -1,0 +1,229 @@
+/* Job page (#/jobs/<id>): live progress per stage by Server-Sent Events, cancel, then the result. */
+
+import {
+  ACTIVE,
+  TERMINAL,
+  api,
+  breadcrumb,
+  formatDate,
+  formatSeconds,
+  h,
+  humanize,
+  messageOf,
+  parseJson,
+  progressBar,
+  statusBadge,
+} from "./lib.js";
+import { showResult } from "./result-map.js";
+
+// -- Job page ------------------------------------------------------------------------------------
+
+export async function renderJob(view, root, jobId) {
+  let job = await api("GET", `/api/jobs/${jobId}`);
+  if (!view.alive) return;
+  const flight = await api("GET", `/api/flights/${job.flight_id}`).catch(() => null);
+  if (!view.alive) return;
+  document.title = `Job ${jobId} · Fotoskhema`;
+
+  const progress = jobProgressCard(view, jobId, (next) => update(next));
+  const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
+  const badge = statusBadge(job.status, { "data-testid": "job-status", role: "status", "aria-live": "polite" });
+  const updated = h("span", {});
+  let resultShown = false;
+
+  function update(next) {
+    job = next;
+    badge.className = `badge large status-${job.status}`;
+    badge.textContent = job.status;
+    updated.textContent = formatDate(job.updated_at);
+    progress.update(job);
+    if (job.status === "succeeded" && !resultShown) {
+      resultShown = true;
+      showResult(view, job, result).catch((err) => {
+        if (view.alive) result.replaceChildren(h("p", { class: "alert error", role: "alert" }, `Could not load the result: ${messageOf(err)}`));
+      });
+    }
+  }
+
+  const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
+  root.append(
+    breadcrumb(["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]),
+    h(
+      "div",
+      { class: "page-head row" },
+      h("h1", {}, `${humanize(job.kind)} job #${jobId}`),
+      badge,
+    ),
+    h("p", { class: "muted small" }, `Created ${formatDate(job.created_at)} · last update `, updated),
+    result, // above the progress once the job has succeeded: the map is what one came for
+    progress.node,
+  );
+  update(job);
+  if (!TERMINAL.has(job.status)) followJob(view, jobId, update);
+}
+
+/** Follow a job's Server-Sent Events; fall back to polling if the stream keeps failing. */
+function followJob(view, jobId, onJob) {
+  const source = new EventSource(`/api/jobs/${jobId}/events`);
+  let failures = 0;
+  let timer = null;
+  const handle = (event) => {
+    failures = 0;
+    const job = parseJson(event.data);
+    if (job && view.alive) onJob(job);
+  };
+  async function poll() {
+    try {
+      const job = await api("GET", `/api/jobs/${jobId}`);
+      if (!view.alive) return;
+      onJob(job);
+      if (TERMINAL.has(job.status)) return;
+    } catch (_err) {
+      if (!view.alive) return;
+    }
+    timer = setTimeout(poll, 2000);
+  }
+  source.addEventListener("progress", handle);
+  source.addEventListener("end", (event) => {
+    source.close();
+    handle(event);
+  });
+  source.addEventListener("error", () => {
+    // EventSource reconnects by itself after a dropped connection; only give up on it for good
+    // when it is closed or keeps failing, and then read the job record instead.
+    failures += 1;
+    if (source.readyState === EventSource.CLOSED || failures >= 5) {
+      source.close();
+      if (!timer) poll();
+    }
+  });
+  view.cleanups.push(() => {
+    source.close();
+    clearTimeout(timer);
+  });
+}
+
+function jobProgressCard(view, jobId, onJob) {
+  const overall = progressBar("Overall job progress", { "data-testid": "job-progress" });
+  const percent = h("span", { class: "percent" });
+  const detail = h("p", { class: "stage-detail", "data-testid": "job-detail" });
+  const stageList = h("ol", { class: "stages", "aria-label": "Stages" });
+  const error = h("div", { class: "alert error", role: "alert", "data-testid": "job-error", hidden: true });
+  const cancel = h("button", { type: "button", class: "btn danger", "data-testid": "cancel-job", hidden: true }, "Cancel job");
+  const total = h("p", { class: "muted small" });
+  let cancelling = false;
+
+  cancel.addEventListener("click", async () => {
+    cancelling = true;
+    cancel.disabled = true;
+    cancel.textContent = "Cancelling…";
+    try {
+      const job = await api("POST", `/api/jobs/${jobId}/cancel`);
+      if (view.alive && job) onJob(job);
+    } catch (err) {
+      if (!view.alive) return;
+      error.hidden = false;
+      error.textContent = `Could not cancel: ${messageOf(err)}`;
+      cancelling = false;
+      cancel.disabled = false;
+      cancel.textContent = "Cancel job";
+    }
+  });
+
+  function update(job) {
+    const active = ACTIVE.has(job.status);
+    overall.set(job.status === "succeeded" ? 100 : job.progress || 0);
+    overall.tone(job.status === "succeeded" ? "done" : job.status === "failed" ? "error" : job.status === "cancelled" ? "muted" : "");
+    percent.textContent = `${Math.round(job.status === "succeeded" ? 100 : job.progress || 0)} %`;
+    detail.textContent = stageSentence(job);
+    stageList.replaceChildren(...stageRows(job));
+    error.hidden = !job.error || job.status === "succeeded";
+    if (!error.hidden) {
+      error.replaceChildren(h("strong", {}, job.status === "failed" ? "Job failed: " : "Error: "), job.error);
+    }
+    cancel.hidden = !active;
+    if (!active) cancelling = false;
+    if (!cancelling) {
+      cancel.disabled = false;
+      cancel.textContent = "Cancel job";
+    }
+    const seconds = Object.values(job.timings || {}).filter((v) => typeof v === "number");
+    total.textContent = seconds.length ? `Total stage time ${formatSeconds(seconds.reduce((a, b) => a + b, 0))}` : "";
+  }
+
+  const node = h(
+    "section",
+    { class: "card", "aria-labelledby": "progress-heading" },
+    h("div", { class: "row spread" }, h("h2", { id: "progress-heading" }, "Progress"), cancel),
+    h("div", { class: "overall" }, overall.node, percent),
+    detail,
+    error,
+    stageList,
+    total,
+  );
+  return { node, update };
+}
+
+function stageSentence(job) {
+  const stage = job.stage ? humanize(job.stage) : "";
+  switch (job.status) {
+    case "queued":
+      return "Waiting for a worker…";
+    case "running":
+      return [stage || "Starting", job.progress_detail].filter(Boolean).join(" — ");
+    case "succeeded":
+      return "Finished: the mosaic is ready.";
+    case "cancelled":
+      return `Cancelled${stage ? ` during ${stage.toLowerCase()}` : ""}.`;
+    case "failed":
+      return `Failed${stage ? ` during ${stage.toLowerCase()}` : ""}.`;
+    default:
+      return job.status;
+  }
+}
+
+/** The state of each stage, from the current stage, the status and the recorded timings. */
+function stageState(job, name, index) {
+  const current = (job.stages || []).indexOf(job.stage);
+  const timed = Object.prototype.hasOwnProperty.call(job.timings || {}, name);
+  if (job.status === "succeeded") return "done";
+  if (index === current) {
+    if (timed) return "done";
+    if (job.status === "running") return "running";
+    if (job.status === "failed" || job.status === "cancelled") return job.status;
+    return "pending";
+  }
+  if (timed || (current >= 0 && index < current)) return "done";
+  return "pending";
+}
+
+/** Fraction of the running stage from a detail like "frame 4/12"; null when it has none. */
+function detailFraction(detail) {
+  const m = /(\d+)\s*\/\s*(\d+)/.exec(detail || "");
+  if (!m || Number(m[2]) === 0) return null;
+  return (Number(m[1]) / Number(m[2])) * 100;
+}
+
+function stageRows(job) {
+  const stages = job.stages && job.stages.length ? job.stages : job.stage ? [job.stage] : [];
+  const labels = { done: "done", running: "running", pending: "pending", failed: "failed", cancelled: "cancelled" };
+  return stages.map((name, index) => {
+    const state = stageState(job, name, index);
+    const bar = progressBar(`${humanize(name)} progress`);
+    if (state === "done") bar.set(100);
+    else if (state === "running") bar.set(detailFraction(job.progress_detail));
+    else if (state === "failed" || state === "cancelled") bar.set(detailFraction(job.progress_detail) ?? 0);
+    else bar.set(0);
+    bar.tone(state === "done" ? "done" : state === "failed" ? "error" : state === "cancelled" ? "muted" : "");
+    const seconds = (job.timings || {})[name];
+    return h(
+      "li",
+      { class: `stage stage-${state}`, "data-stage": name },
+      h("span", { class: "stage-dot", "aria-hidden": "true" }),
+      h("span", { class: "stage-name", title: name }, humanize(name)),
+      bar.node,
+      h("span", { class: "stage-meta" },
+        state === "running" && job.progress_detail ? job.progress_detail : state === "done" && typeof seconds === "number" ? formatSeconds(seconds) : labels[state]),
+    );
+  });
+}

@@ -1,0 +1,155 @@
+/* A finished job's mosaic on a Leaflet map (global `L`, loaded before the modules), with its downloads. */
+
+import { api, formatBytes, getConfig, h } from "./lib.js";
+
+// -- Result: map and downloads ------------------------------------------------------------------
+
+export async function showResult(view, job, card) {
+  card.hidden = false;
+  card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the mosaic…"));
+  const [tilejson, outputs, config] = await Promise.all([
+    api("GET", `/tiles/${job.id}/tilejson.json`),
+    api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []),
+    getConfig(),
+  ]);
+  if (!view.alive) return;
+  const byName = Object.fromEntries(outputs.map((o) => [o.name, o]));
+  const georeferenced = tilejson.georeferenced !== false;
+
+  const mapNode = h("div", { class: "map", id: "map", "data-testid": "map", role: "region", "aria-label": "Mosaic map" });
+  const controls = h("div", { class: "map-controls" });
+  card.replaceChildren(
+    h("div", { class: "row spread" }, h("h2", { id: "result-heading" }, "Result"),
+      h("span", { class: "muted small" }, georeferenced ? "Georeferenced (WGS 84 / Web Mercator)" : "Not georeferenced: shown in mosaic pixels")),
+    h("div", { class: "result-grid" }, mapNode, controls),
+  );
+  const { map, mosaic } = createMosaicMap(mapNode, tilejson, georeferenced ? config.basemap_url : "");
+  view.cleanups.push(() => map.remove());
+
+  controls.append(opacityControl(mosaic));
+  const footprints = byName["footprints.geojson"];
+  controls.append(georeferenced && footprints ? footprintControl(view, map, footprints.url) : footprintUnavailable(georeferenced));
+  controls.append(downloadList(byName), mosaicFacts(tilejson, georeferenced));
+}
+
+/** The tile layer's bounds, pulled in by a hair: a tile that only touches the mosaic's edge would
+ * otherwise be requested, answered 404 by the tile route, and logged as an error by the browser. */
+function insetBounds(west, south, east, north) {
+  const dx = (east - west) * 1e-6;
+  const dy = (north - south) * 1e-6;
+  return L.latLngBounds([south + dy, west + dx], [north - dy, east - dx]);
+}
+
+function createMosaicMap(node, tilejson, basemapUrl) {
+  const [west, south, east, north] = tilejson.bounds;
+  const bounds = L.latLngBounds([south, west], [north, east]);
+  const minzoom = Number.isFinite(tilejson.minzoom) ? tilejson.minzoom : 0;
+  const maxzoom = Number.isFinite(tilejson.maxzoom) ? tilejson.maxzoom : 22;
+  const layerOptions = {
+    bounds: insetBounds(west, south, east, north),
+    noWrap: true,
+    tileSize: 256,
+    attribution: "Mosaic: Fotoskhema",
+  };
+  // Whole zoom levels only (Leaflet's default zoomSnap): at a fractional zoom the tiles are scaled and
+  // hairline seams show between them; whole levels also show the mosaic's pixels one to one.
+  let map;
+  if (tilejson.georeferenced === false) {
+    // Local pixel grid: Leaflet's CRS.Simple has 1 map unit per screen pixel at zoom 0, and the tile
+    // grid has 1 mosaic pixel per tile pixel at maxzoom, so map zoom 0 is tile zoom `maxzoom`.
+    map = L.map(node, { crs: L.CRS.Simple, minZoom: minzoom - maxzoom - 2, maxZoom: 3 });
+    Object.assign(layerOptions, { zoomOffset: maxzoom, minNativeZoom: minzoom - maxzoom, maxNativeZoom: 0, minZoom: minzoom - maxzoom - 2, maxZoom: 3 });
+  } else {
+    map = L.map(node, { minZoom: Math.max(0, minzoom - 3), maxZoom: maxzoom + 2 });
+    Object.assign(layerOptions, { minNativeZoom: minzoom, maxNativeZoom: maxzoom, maxZoom: maxzoom + 2 });
+    if (basemapUrl) {
+      L.tileLayer(basemapUrl, { maxZoom: maxzoom + 2, attribution: `Basemap: ${hostOf(basemapUrl)}` }).addTo(map);
+    }
+    L.control.scale({ imperial: false }).addTo(map);
+  }
+  const mosaic = L.tileLayer(tilejson.tiles[0], layerOptions).addTo(map);
+  map.fitBounds(bounds, { padding: [12, 12] });
+  return { map, mosaic };
+}
+
+function hostOf(url) {
+  try {
+    return new URL(url).hostname;
+  } catch (_err) {
+    return "external";
+  }
+}
+
+function opacityControl(layer) {
+  const output = h("output", { for: "opacity", class: "muted small" }, "100 %");
+  const slider = h("input", { id: "opacity", type: "range", min: 0, max: 100, step: 5, value: 100, "data-testid": "opacity" });
+  slider.addEventListener("input", () => {
+    layer.setOpacity(Number(slider.value) / 100);
+    output.textContent = `${slider.value} %`;
+  });
+  return h("div", { class: "control" }, h("label", { for: "opacity" }, "Mosaic opacity ", output), slider);
+}
+
+function footprintControl(view, map, url) {
+  const box = h("input", { id: "footprints", type: "checkbox", checked: true, "data-testid": "footprints-toggle" });
+  const note = h("span", { class: "muted small" });
+  let layer = null;
+  box.addEventListener("change", () => {
+    if (!layer) return;
+    if (box.checked) layer.addTo(map);
+    else layer.remove();
+  });
+  fetch(url)
+    .then((response) => (response.ok ? response.json() : Promise.reject(new Error(`${response.status}`))))
+    .then((geojson) => {
+      if (!view.alive) return;
+      layer = L.geoJSON(geojson, {
+        style: { color: "#f59e0b", weight: 1.5, opacity: 0.9, fillOpacity: 0.04 },
+        onEachFeature: (feature, featureLayer) => {
+          const props = feature.properties || {};
+          featureLayer.bindTooltip(`Frame ${props.index ?? "?"}${props.name ? `: ${props.name}` : ""}`, { sticky: true });
+        },
+      });
+      if (box.checked) layer.addTo(map);
+      note.textContent = `${(geojson.features || []).length} frames`;
+    })
+    .catch((err) => {
+      if (!view.alive) return;
+      box.disabled = true;
+      note.textContent = `unavailable (${err.message})`;
+    });
+  return h("div", { class: "control" }, h("label", { class: "check" }, box, " Frame footprints "), note);
+}
+
+function footprintUnavailable(georeferenced) {
+  return h("div", { class: "control" }, h("p", { class: "muted small" },
+    georeferenced ? "No frame footprints for this job." : "Frame footprints need GPS: this mosaic has none."));
+}
+
+function downloadList(byName) {
+  const entry = (name, label, testid) => {
+    const output = byName[name];
+    return h("li", {}, output
+      ? h("a", { href: output.url, download: name, "data-testid": testid }, label, h("span", { class: "muted small" }, ` ${name} · ${formatBytes(output.size_bytes)}`))
+      : h("span", { class: "muted" }, `${label} (not available)`));
+  };
+  return h(
+    "div",
+    { class: "control" },
+    h("h3", {}, "Downloads"),
+    h("ul", { class: "plain downloads" },
+      entry("mosaic.tif", "Mosaic (Cloud-Optimized GeoTIFF)", "download-cog"),
+      entry("report.json", "Processing report", "download-report"),
+      byName["footprints.geojson"] ? entry("footprints.geojson", "Frame footprints", "download-footprints") : null),
+  );
+}
+
+function mosaicFacts(tilejson, georeferenced) {
+  const [west, south, east, north] = tilejson.bounds;
+  const rows = georeferenced
+    ? [["West, south", `${west.toFixed(6)}, ${south.toFixed(6)}`], ["East, north", `${east.toFixed(6)}, ${north.toFixed(6)}`]]
+    : [["Size", `${Math.round(east - west)} × ${Math.round(north - south)} px`]];
+  rows.push(["Zoom levels", `${tilejson.minzoom} – ${tilejson.maxzoom}`]);
+  return h("div", { class: "control" }, h("h3", {}, "Extent"),
+    h("dl", { class: "facts" }, rows.map(([k, v]) => [h("dt", {}, k), h("dd", {}, v)])));
+}

@@ -1,0 +1,1 @@
+"""Pipeline workers: Celery tasks over job workspaces, stage logic and pure algorithms."""

@@ -1,0 +1,105 @@
+"""The ordered stages of each job kind, how a job becomes a Celery chain, and the in-process runner.
+
+Stage modules are imported lazily so that the API (which only needs names and weights) never loads
+OpenCV or the stage code.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from workers.config import build_config
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    name: str  # also the module under workers.stages and the Celery task name suffix
+    weight: float  # share of the job's progress bar, relative to the other stages
+
+
+PIPELINES: dict[str, tuple[StageSpec, ...]] = {
+    "mosaic": (
+        StageSpec("load_images", 10),
+        StageSpec("detect_features", 20),
+        StageSpec("match_features", 25),
+        StageSpec("align_frames", 10),
+        StageSpec("georeference", 2),
+        StageSpec("compose_mosaic", 30),
+        StageSpec("write_report", 3),
+    ),
+}
+
+
+class PipelineError(Exception):
+    """A stage cannot go on; the message tells the user what is wrong with their data or options."""
+
+
+def stage_names(kind: str) -> list[str]:
+    return [spec.name for spec in PIPELINES[kind]]
+
+
+def task_name(stage: str) -> str:
+    return f"fotoskhema.{stage}"
+
+
+def overall_progress(kind: str, stage: str, fraction: float) -> float:
+    """Job progress 0-100 when ``stage`` is ``fraction`` done, weighting the stages."""
+    specs = PIPELINES[kind]
+    total = sum(s.weight for s in specs)
+    done = 0.0
+    for spec in specs:
+        if spec.name == stage:
+            return round(100.0 * (done + spec.weight * min(max(fraction, 0.0), 1.0)) / total, 2)
+        done += spec.weight
+    raise ValueError(f"stage {stage!r} is not part of a {kind!r} job")
+
+
+def stage_function(stage: str) -> Callable[..., dict[str, Any]]:
+    module = importlib.import_module(f"workers.stages.{stage}")
+    return module.run  # type: ignore[no-any-return]
+
+
+def run_stage(ws: JobWorkspace, kind: str, stage: str, progress: ProgressFn = noop_progress,
+              rerun: bool = False) -> dict[str, Any]:
+    """Run one stage over ``ws`` unless its report says it already ran; save and return its report."""
+    if not rerun and (done := ws.load_stage_report(stage)) is not None:
+        return done
+    cfg = build_config(kind, ws.load_config())
+    started = time.perf_counter()
+    report = stage_function(stage)(ws, cfg, progress=progress)
+    report["wall_seconds"] = round(time.perf_counter() - started, 3)
+    ws.save_stage_report(stage, report)
+    return report
+
+
+def process_directory(src_dir: Path, out_dir: Path, options: dict[str, Any] | None = None,
+                      progress: Callable[[str, float, str], None] | None = None) -> dict[str, Any]:
+    """Run the whole mosaic pipeline in this process over the images in ``src_dir``.
+
+    ``out_dir`` becomes the job workspace: ``mosaic.tif`` and ``report.json`` end up there.
+    """
+    from workers.image_meta import InvalidImageError, inspect_image
+
+    paths = sorted(p for p in Path(src_dir).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png", ".tif", ".tiff"})
+    frames = []
+    for path in paths:
+        try:
+            meta = inspect_image(path)
+        except InvalidImageError as exc:
+            raise PipelineError(f"{path.name}: {exc}") from None
+        frames.append({"name": path.name, "path": str(path.resolve()), **meta})
+    if len(frames) < 2:
+        raise PipelineError(f"{src_dir} holds {len(frames)} usable image(s); a mosaic needs at least 2")
+    ws = JobWorkspace(out_dir)
+    ws.save_config(build_config("mosaic", options).model_dump())
+    ws.save_inputs(frames)
+    for name in stage_names("mosaic"):
+        stage_progress = (lambda f, d, _n=name: progress(_n, f, d)) if progress else noop_progress
+        run_stage(ws, "mosaic", name, stage_progress)
+    return dict(read_json(ws.report_file()))

@@ -1,0 +1,53 @@
+"""Writing the mosaic: a tiled GeoTIFF filled window by window, then a Cloud-Optimized GeoTIFF."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+from rasterio.crs import CRS
+from rasterio.transform import Affine
+from rasterio.windows import Window
+from rio_cogeo.cogeo import cog_translate
+from rio_cogeo.profiles import cog_profiles
+
+from workers.workspace import atomic_path
+
+BlockWriter = Callable[[Window, np.ndarray, np.ndarray], None]
+
+
+@contextmanager
+def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
+                      transform: list[float] | None) -> Iterator[BlockWriter]:
+    """A 3-band uint8 tiled GeoTIFF with an internal mask; yields ``write(window, rgb, mask)``.
+
+    ``rgb`` is (h, w, 3) uint8 in R, G, B order and ``mask`` (h, w) bool, True where there is data.
+    """
+    profile: dict[str, Any] = {
+        "driver": "GTiff", "width": width, "height": height, "count": 3, "dtype": "uint8",
+        "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate",
+        "photometric": "RGB", "BIGTIFF": "IF_SAFER",
+    }
+    if epsg is not None and transform is not None:
+        profile.update(crs=CRS.from_epsg(epsg), transform=Affine(*transform))
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+        def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
+            dst.write(np.moveaxis(rgb, 2, 0), window=window)
+            dst.write_mask(np.where(mask, 255, 0).astype(np.uint8), window=window)
+
+        yield write
+
+
+def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
+    """Copy ``src`` into a COG at ``dst`` with overviews and its mask, atomically and window by window
+    (``in_memory=False``: memory does not grow with the mosaic)."""
+    profile = dict(cog_profiles.get(compression))
+    if compression == "jpeg":
+        profile["photometric"] = "YCbCr"
+    with atomic_path(dst) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256):
+        cog_translate(str(src), str(tmp), profile, add_mask=True, overview_resampling="average",
+                      in_memory=False, quiet=True)

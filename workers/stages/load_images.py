@@ -1,0 +1,51 @@
+"""Stage ``load_images``: decode every input frame once and keep a downscaled working copy."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from workers.config import MosaicConfig
+from workers.pipeline import PipelineError
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
+
+
+def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
+    """Read ``inputs.json``; write ``work/frame_NNNN.npy`` and ``frames.json``."""
+    inputs = ws.load_inputs()
+    frames: list[dict[str, Any]] = []
+    rejected: list[dict[str, Any]] = []
+    for k, item in enumerate(inputs):
+        progress(k / len(inputs), f"frame {k + 1}/{len(inputs)}")
+        image = cv2.imread(item["path"], cv2.IMREAD_COLOR)
+        if image is None:
+            rejected.append({"index": k, "name": item["name"], "reason": "could not be decoded"})
+            continue
+        working, scale = _downscale(image, cfg.working_max_px)
+        ws.save_working_image(k, working)
+        frames.append({
+            "index": k, "name": item["name"], "path": item["path"],
+            "orig_width": image.shape[1], "orig_height": image.shape[0],
+            "width": working.shape[1], "height": working.shape[0], "scale": scale,
+            "gps": item.get("gps"), "focal_length_mm": item.get("focal_length_mm"),
+            "focal_length_35mm": item.get("focal_length_35mm"),
+            "yaw": item.get("yaw"), "pitch": item.get("pitch"), "roll": item.get("roll"),
+            "relative_altitude": item.get("relative_altitude"),
+        })
+    if len(frames) < 2:
+        raise PipelineError(f"only {len(frames)} of {len(inputs)} frames could be decoded; a mosaic needs 2")
+    ws.save_frames(frames, rejected)
+    progress(1.0, f"frame {len(inputs)}/{len(inputs)}")
+    return {"frames": len(frames), "rejected": len(rejected)}
+
+
+def _downscale(image: np.ndarray, max_px: int) -> tuple[np.ndarray, float]:
+    """The image shrunk (INTER_AREA, no aliasing) so its longest side is at most ``max_px``."""
+    longest = max(image.shape[:2])
+    if longest <= max_px:
+        return np.ascontiguousarray(image), 1.0
+    scale = max_px / longest
+    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), scale

@@ -1,0 +1,49 @@
+"""Stage ``match_features``: ratio-test matches and a USAC homography for each candidate pair."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from workers.algorithms.matching import estimate_homography, match_ratio, spread_subset
+from workers.algorithms.pairing import candidate_pairs, local_metres
+from workers.config import MosaicConfig
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
+
+
+def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
+    """Write ``matches/pair_I_J.npz`` (inlier tie points) and ``pairs.json`` (every pair tried)."""
+    frames = ws.load_frames()
+    with_gps = all(f.get("gps") for f in frames)
+    positions = local_metres(np.array([[f["gps"]["lat"], f["gps"]["lon"]] for f in frames])) if with_gps else None
+    pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
+    features = {f["index"]: ws.load_features(f["index"]) for f in frames}
+    results = []
+    for k, (a, b) in enumerate(pairs):
+        progress(k / max(len(pairs), 1), f"pair {k + 1}/{len(pairs)}")
+        results.append(_match_pair(ws, cfg, frames[a], frames[b], features))
+    write_json(ws.pairs_file(), {"pairs": results})
+    progress(1.0, f"pair {len(pairs)}/{len(pairs)}")
+    accepted = [r for r in results if r["accepted"]]
+    exhaustive = not with_gps and len(frames) <= cfg.exhaustive_max_frames
+    return {"pairs_tried": len(results), "pairs_accepted": len(accepted),
+            "selection": "gps+order" if with_gps else ("exhaustive" if exhaustive else "order")}
+
+
+def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, fa: dict[str, Any], fb: dict[str, Any],
+                features: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    i, j = fa["index"], fb["index"]
+    (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
+    matches = match_ratio(desc_i, desc_j, cfg.ratio_test)
+    H, inliers = estimate_homography(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
+    n_in = int(inliers.sum())
+    accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
+    record: dict[str, Any] = {"i": i, "j": j, "matches": len(matches), "inliers": n_in, "accepted": bool(accepted),
+                              "H": H.tolist() if H is not None else None}
+    if accepted:
+        good = matches[inliers]
+        keep = spread_subset(pts_i[good[:, 0]], (fa["width"], fa["height"]), cfg.max_tie_points_per_pair)
+        ws.save_matches((i, j), pts_i[good[keep, 0]].astype(np.float64), pts_j[good[keep, 1]].astype(np.float64))
+        record["tie_points"] = len(keep)
+    return record

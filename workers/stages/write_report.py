@@ -1,0 +1,98 @@
+"""Stage ``write_report``: ``report.json`` (what was used, how well it fits) and frame footprints."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from workers.algorithms.alignment import apply_homography, frame_corners
+from workers.algorithms.georef import utm_to_lonlat
+from workers.config import MosaicConfig
+from workers.pipeline import stage_names
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
+
+
+def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
+    """Write ``report.json`` and, for a georeferenced mosaic, ``footprints.geojson``."""
+    progress(0.0, "report")
+    frames = {f["index"]: f for f in ws.load_frames()}
+    align, geo = read_json(ws.alignment_file()), read_json(ws.georef_file())
+    pairs = read_json(ws.pairs_file())["pairs"]
+    homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
+    to_out = np.linalg.inv(np.array(geo["output_to_plane"]))
+    footprints = {k: _to_crs(geo, apply_homography(to_out @ H, frame_corners(frames[k]["width"], frames[k]["height"])))
+                  for k, H in homs.items()}
+    coverage = read_json(ws.root / "coverage.json")
+    outline = [_to_crs(geo, np.array(ring)) for ring in coverage["outline_px"]]
+    ref = frames[align["reference"]]
+    rms = align["tie_point_rms_px"]
+    report = {
+        "kind": "mosaic",
+        "config": cfg.model_dump(),
+        "frames_used": [_frame_entry(frames[k], footprints[k], align) for k in sorted(homs)],
+        "frames_rejected": ws.load_rejected_frames() + align["rejected"],
+        "reference_frame": ref["name"],
+        "pairs": _pair_entries(pairs, frames, align),
+        "tie_point_rms_px": rms,
+        "tie_point_rms_px_original": rms / ref["scale"] if rms is not None else None,
+        "tie_points": align["tie_points"],
+        "georeferenced": geo["georeferenced"],
+        "georeference_note": geo["reason"],
+        "crs": f"EPSG:{geo['epsg']}" if geo["georeferenced"] else None,
+        "gsd_m": geo["gsd_m"],
+        "gps_residual_rms_m": geo.get("gps_residual_rms_m"),
+        "mosaic": {"width": geo["width"], "height": geo["height"], "transform": geo["transform"],
+                   "footprint": _polygon(outline, geo), "coverage_fraction": coverage["area_fraction"]},
+        "stage_seconds": _stage_seconds(ws),
+    }
+    write_json(ws.report_file(), report)
+    if geo["georeferenced"]:
+        write_json(ws.footprints_file(), _footprint_collection(frames, footprints))
+    progress(1.0, "report")
+    return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
+
+
+def _to_crs(geo: dict[str, Any], out_px: np.ndarray) -> np.ndarray:
+    """Output pixel coordinates -> lon/lat (georeferenced) or output pixels (not)."""
+    if not geo["georeferenced"]:
+        return out_px
+    a = np.array(geo["transform"]).reshape(2, 3)
+    xy = out_px @ a[:, :2].T + a[:, 2]
+    return utm_to_lonlat(xy, geo["epsg"])
+
+
+def _polygon(rings: list[np.ndarray], geo: dict[str, Any]) -> dict[str, Any]:
+    closed = [np.vstack([r, r[:1]]).round(8).tolist() for r in rings]
+    return {"type": "MultiPolygon", "coordinates": [[ring] for ring in closed],
+            "units": "lon/lat degrees" if geo["georeferenced"] else "mosaic pixels"}
+
+
+def _frame_entry(frame: dict[str, Any], footprint: np.ndarray, align: dict[str, Any]) -> dict[str, Any]:
+    return {"index": frame["index"], "name": frame["name"], "gps": frame.get("gps"),
+            "size": [frame["orig_width"], frame["orig_height"]], "working_scale": frame["scale"],
+            "footprint": np.vstack([footprint, footprint[:1]]).round(8).tolist()}
+
+
+def _pair_entries(pairs: list[dict[str, Any]], frames: dict[int, dict[str, Any]],
+                  align: dict[str, Any]) -> list[dict[str, Any]]:
+    rms = {(p["i"], p["j"]): p["rms_px"] for p in align["pairs"]}
+    return [{"frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]], "matches": p["matches"],
+             "inliers": p["inliers"], "accepted": p["accepted"], "tie_point_rms_px": rms.get((p["i"], p["j"]))}
+            for p in pairs]
+
+
+def _stage_seconds(ws: JobWorkspace) -> dict[str, float]:
+    out = {}
+    for name in stage_names("mosaic"):
+        rep = ws.load_stage_report(name)
+        if rep is not None:
+            out[name] = rep.get("wall_seconds", 0.0)
+    return out
+
+
+def _footprint_collection(frames: dict[int, dict[str, Any]], footprints: dict[int, np.ndarray]) -> dict[str, Any]:
+    features = [{"type": "Feature", "properties": {"index": k, "name": frames[k]["name"]},
+                 "geometry": {"type": "Polygon", "coordinates": [np.vstack([c, c[:1]]).round(8).tolist()]}}
+                for k, c in sorted(footprints.items())]
+    return {"type": "FeatureCollection", "features": features}

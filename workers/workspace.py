@@ -1,0 +1,186 @@
+"""Every path of a job in one object, with atomic writers for its artifacts.
+
+Artifacts are JSON, ``.npy``/``.npz`` or GeoTIFF, never pickle. Every writer goes through a temporary
+file in the same folder and ``os.replace``, so a reader never sees half an artifact and a stage killed
+half-way leaves nothing that looks finished.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@contextmanager
+def atomic_path(target: Path, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; it replaces ``target`` only if the block succeeds."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix or target.suffix, dir=target.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, target)
+    finally:
+        tmp_path.unlink(missing_ok=True)
+
+
+def write_json(path: Path, data: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_json_default))
+
+
+def read_json(path: Path) -> Any:
+    return json.loads(path.read_text())
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot serialise {type(value).__name__}")
+
+
+class JobWorkspace:
+    """The folder of one job: inputs, per-stage artifacts, reports and outputs."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+
+    # -- inputs and configuration -------------------------------------------------------------
+    def config_file(self) -> Path:
+        return self.root / "config.json"
+
+    def inputs_file(self) -> Path:
+        """The frames of the job as the API (or ``fotoskhema process``) listed them."""
+        return self.root / "inputs.json"
+
+    def load_inputs(self) -> list[dict[str, Any]]:
+        return list(read_json(self.inputs_file())["frames"])
+
+    def save_inputs(self, frames: list[dict[str, Any]]) -> None:
+        write_json(self.inputs_file(), {"frames": frames})
+
+    def load_config(self) -> dict[str, Any]:
+        return dict(read_json(self.config_file()))
+
+    def save_config(self, config: dict[str, Any]) -> None:
+        write_json(self.config_file(), config)
+
+    # -- load_images ----------------------------------------------------------------------------
+    def frames_file(self) -> Path:
+        return self.root / "frames.json"
+
+    def load_frames(self) -> list[dict[str, Any]]:
+        return list(read_json(self.frames_file())["frames"])
+
+    def save_frames(self, frames: list[dict[str, Any]], rejected: list[dict[str, Any]]) -> None:
+        write_json(self.frames_file(), {"frames": frames, "rejected": rejected})
+
+    def load_rejected_frames(self) -> list[dict[str, Any]]:
+        return list(read_json(self.frames_file())["rejected"])
+
+    def working_image_file(self, index: int) -> Path:
+        return self.root / "work" / f"frame_{index:04d}.npy"
+
+    def save_working_image(self, index: int, image: np.ndarray) -> None:
+        with atomic_path(self.working_image_file(index)) as tmp:
+            np.save(tmp, image)
+
+    def load_working_image(self, index: int, mmap: bool = False) -> np.ndarray:
+        """``(H, W, 3) uint8`` BGR; memory-mapped on request, so windows cost only what they read."""
+        return np.load(self.working_image_file(index), mmap_mode="r" if mmap else None)
+
+    # -- detect_features ------------------------------------------------------------------------
+    def features_file(self, index: int) -> Path:
+        return self.root / "features" / f"frame_{index:04d}.npz"
+
+    def save_features(self, index: int, points: np.ndarray, descriptors: np.ndarray) -> None:
+        _save_npz(self.features_file(index), points=points, descriptors=descriptors)
+
+    def load_features(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        with np.load(self.features_file(index)) as data:
+            return data["points"], data["descriptors"]
+
+    # -- match_features -------------------------------------------------------------------------
+    def matches_file(self, pair: tuple[int, int]) -> Path:
+        return self.root / "matches" / f"pair_{pair[0]:04d}_{pair[1]:04d}.npz"
+
+    def save_matches(self, pair: tuple[int, int], points_i: np.ndarray, points_j: np.ndarray) -> None:
+        _save_npz(self.matches_file(pair), points_i=points_i, points_j=points_j)
+
+    def load_matches(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        with np.load(self.matches_file(pair)) as data:
+            return data["points_i"], data["points_j"]
+
+    def pairs_file(self) -> Path:
+        return self.root / "pairs.json"
+
+    # -- align_frames, georeference -------------------------------------------------------------
+    def alignment_file(self) -> Path:
+        return self.root / "alignment.json"
+
+    def georef_file(self) -> Path:
+        return self.root / "georef.json"
+
+    # -- outputs --------------------------------------------------------------------------------
+    def mosaic_file(self) -> Path:
+        return self.root / "mosaic.tif"
+
+    def report_file(self) -> Path:
+        return self.root / "report.json"
+
+    def footprints_file(self) -> Path:
+        return self.root / "footprints.geojson"
+
+    def stage_report_file(self, stage: str) -> Path:
+        return self.root / "reports" / f"{stage}.json"
+
+    def save_stage_report(self, stage: str, report: dict[str, Any]) -> None:
+        write_json(self.stage_report_file(stage), report)
+
+    def load_stage_report(self, stage: str) -> dict[str, Any] | None:
+        path = self.stage_report_file(stage)
+        return dict(read_json(path)) if path.exists() else None
+
+    def outputs(self) -> dict[str, Path]:
+        """Downloadable outputs that exist, by public name."""
+        named = {
+            "mosaic.tif": self.mosaic_file(),
+            "report.json": self.report_file(),
+            "footprints.geojson": self.footprints_file(),
+        }
+        return {name: path for name, path in named.items() if path.exists()}
+
+
+def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, allow_pickle=False, **arrays)
+
+
+ProgressFn = Callable[[float, str], None]
+"""``progress(fraction_of_stage in [0, 1], detail such as "frame 4/12")``."""
+
+
+def noop_progress(_fraction: float, _detail: str) -> None:
+    return None
+
+
+def job_workspace(data_dir: Path, job_id: int) -> JobWorkspace:
+    """Where the job ``job_id`` keeps its files under the service's data folder."""
+    return JobWorkspace(Path(data_dir) / "jobs" / str(int(job_id)))
+
+
+def flight_folder(data_dir: Path, flight_id: int) -> Path:
+    """Where the photos of flight ``flight_id`` are stored."""
+    return Path(data_dir) / "flights" / str(int(flight_id)) / "images"
