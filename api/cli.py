@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,8 @@ def _up(args: argparse.Namespace) -> int:
     from api.services import start_redis, start_worker, stop  # noqa: PLC0415
     from api.settings import get_settings  # noqa: PLC0415
 
+    # uvicorn re-raises SIGTERM once it has shut down; turn it into SystemExit so the children stop too.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     settings = get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     print(f"fotoskhema: data in {settings.data_dir.resolve()}, Redis at {settings.redis_url}", flush=True)

@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 
+from tests.conftest import shared_data
 from tests.scenes import make_flight
 
 pytestmark = pytest.mark.browser
@@ -32,7 +33,6 @@ LAUNCH_ARGS = [
     "--no-first-run",
 ]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts"
-N_FRAMES = 5
 JOB_TIMEOUT_MS = 180_000
 TILE_URL = re.compile(r"/tiles/\d+/\d+/\d+/\d+\.png")
 TERMINAL_STATUS_JS = """() => {
@@ -142,12 +142,21 @@ def _wait_for(page: Any, script: str, timeout_ms: int, watch: PageWatch, what: s
         pytest.fail(f"{what} within {timeout_ms / 1000:.0f} s; the page reported: {watch.summary()}")
 
 
-def test_mosaic_job_from_upload_to_map(watched_page, live_service, tmp_path: Path) -> None:
+@pytest.fixture(params=["synthetic", "brighton"])
+def photos(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, list[Path], str]:
+    """(name, photo files, their size as the page prints it): 5 synthetic frames, or the 6 real
+    Brighton drone frames of ../shared/data (the issue's 'done when')."""
+    if request.param == "brighton":
+        return "brighton", sorted(shared_data("drone_brighton_strip1").glob("*.JPG")), "4000 × 2250"
+    flight = make_flight(tmp_path / "frames", n_frames=5, frame_size=(480, 360), gps=True, seed=7)
+    return "synthetic", flight.paths, "480 × 360"
+
+
+def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> None:
     from playwright.sync_api import expect
 
     page, watch = watched_page
-    flight = make_flight(tmp_path / "frames", n_frames=N_FRAMES, frame_size=(480, 360), gps=True, seed=7)
-    assert len(flight.paths) == N_FRAMES
+    name, paths, size_text = photos
 
     page.goto(f"{live_service.url}/")
     page.get_by_test_id("flight-name-input").fill("Browser test flight")
@@ -155,12 +164,12 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, tmp_path: Pat
     page.wait_for_url(re.compile(r"#/flights/\d+$"))
     expect(page.get_by_test_id("start-job")).to_be_disabled()
 
-    page.get_by_test_id("file-input").set_input_files([str(p) for p in flight.paths])
+    page.get_by_test_id("file-input").set_input_files([str(p) for p in paths])
     rows = page.get_by_test_id("image-row")
-    expect(rows).to_have_count(N_FRAMES, timeout=60_000)
+    expect(rows).to_have_count(len(paths), timeout=60_000)
     expect(page.get_by_test_id("upload-progress")).to_have_attribute("aria-valuenow", "100")
-    expect(rows.filter(has_text="no GPS")).to_have_count(0)  # every synthetic frame carries EXIF GPS
-    expect(rows.first).to_contain_text("480 × 360")
+    expect(rows.filter(has_text="no GPS")).to_have_count(0)  # every frame carries EXIF GPS
+    expect(rows.first).to_contain_text(size_text)
 
     start = page.get_by_test_id("start-job")
     expect(start).to_be_enabled()
@@ -194,7 +203,7 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, tmp_path: Pat
     expect(mosaic_layer).to_have_css("opacity", "0.5")
     page.get_by_test_id("opacity").fill("100")
     ARTIFACTS.mkdir(exist_ok=True)  # before the checks below, so a failing run leaves its picture too
-    page.screenshot(path=str(ARTIFACTS / "viewer.png"), full_page=True)
+    page.screenshot(path=str(ARTIFACTS / f"viewer_{name}.png"), full_page=True)
 
     tiles = watch.tile_responses
     assert tiles, "no tile was requested"

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from sqlalchemy.engine import make_url
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -26,70 +27,8 @@ COMPOSE = ROOT / "docker-compose.yml"
 APP_SERVICES = ("api", "worker-gpu", "worker-cpu")  # run our image, share the data volume
 
 
-# --- a reader for the block-YAML subset docker-compose.yml keeps to, used when PyYAML is absent ---
-
-def _strip_comment(line: str) -> str:
-    quote = ""
-    for i, ch in enumerate(line):
-        if quote:
-            quote = "" if ch == quote else quote
-        elif ch in "\"'":
-            quote = ch
-        elif ch == "#" and (i == 0 or line[i - 1] == " "):
-            return line[:i].rstrip()
-    return line.rstrip()
-
-
-def _scalar(text: str) -> Any:
-    if text.startswith(("[", '"')):
-        return json.loads(text)  # flow lists and strings are written JSON-compatible
-    if text.startswith("'"):
-        return text[1:-1].replace("''", "'")
-    if text == "{}":
-        return {}
-    if re.fullmatch(r"-?\d+", text):
-        return int(text)
-    return {"true": True, "false": False, "null": None, "~": None}.get(text, text)
-
-
-def _block(lines: list[tuple[int, str]], i: int, indent: int) -> tuple[Any, int]:
-    if lines[i][1].startswith("- "):
-        items = []
-        while i < len(lines) and lines[i][0] == indent and lines[i][1].startswith("- "):
-            rest = lines[i][1][2:]
-            if re.match(r"[\w.-]+:( |$)", rest):  # "- key: value" opens a mapping
-                lines[i] = (indent + 2, rest)
-                item, i = _block(lines, i, indent + 2)
-            else:
-                item, i = _scalar(rest), i + 1
-            items.append(item)
-        return items, i
-    mapping: dict[str, Any] = {}
-    while i < len(lines) and lines[i][0] == indent:
-        key, _, rest = lines[i][1].partition(":")
-        i += 1
-        if rest.strip():
-            mapping[key] = _scalar(rest.strip())
-        elif i < len(lines) and lines[i][0] > indent:
-            mapping[key], i = _block(lines, i, lines[i][0])
-        else:
-            mapping[key] = None
-    return mapping, i
-
-
-def mini_yaml(text: str) -> Any:
-    """Parse block mappings and lists, JSON-style flow lists and quoted or plain scalars."""
-    lines = [(len(s) - len(s.lstrip()), s.strip()) for s in map(_strip_comment, text.splitlines())]
-    return _block([ln for ln in lines if ln[1]], 0, 0)[0]
-
-
 def load_compose() -> dict[str, Any]:
-    text = COMPOSE.read_text()
-    try:
-        import yaml
-    except ImportError:
-        return mini_yaml(text)
-    return yaml.safe_load(text)
+    return dict(yaml.safe_load(COMPOSE.read_text()))
 
 
 # --- helpers ---
@@ -138,15 +77,6 @@ def build_dockerfile(build: str | dict[str, Any]) -> Path:
 
 
 # --- the tests ---
-
-def test_mini_yaml_reads_the_compose_file_as_pyyaml_does() -> None:
-    try:
-        import yaml
-    except ImportError:
-        assert set(services()) >= {"redis", "postgres", *APP_SERVICES}
-        return
-    assert mini_yaml(COMPOSE.read_text()) == yaml.safe_load(COMPOSE.read_text())
-
 
 def test_every_built_image_has_a_dockerfile_whose_copy_sources_exist() -> None:
     built = {name: svc["build"] for name, svc in services().items() if "build" in svc}
