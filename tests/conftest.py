@@ -4,10 +4,13 @@
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,11 +44,54 @@ class RecordingQueue:
         return f"recorded-{job_id}"
 
 
-@pytest.fixture
-def api_settings(tmp_path: Path):
+@pytest.fixture(params=["sqlite", "postgresql"])
+def api_settings(request: pytest.FixtureRequest, tmp_path: Path):
+    """Settings over a temporary data dir; every API test runs on SQLite and on a real PostgreSQL."""
     from api.settings import Settings
 
-    return Settings(data_dir=tmp_path / "data", database_url="", redis_url="redis://127.0.0.1:1/0")
+    url = fresh_database(request.getfixturevalue("postgres_base_url")) if request.param == "postgresql" else ""
+    return Settings(data_dir=tmp_path / "data", database_url=url, redis_url="redis://127.0.0.1:1/0")
+
+
+@pytest.fixture(scope="session")
+def postgres_base_url() -> Iterator[str]:
+    """A throw-away PostgreSQL cluster (Debian's server binaries) on a free port, trust auth."""
+    from api.services import stop, wait_for_port
+
+    initdb = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
+    if not initdb:
+        pytest.skip("PostgreSQL server binaries are absent (Debian package postgresql; "
+                    "scripts/setup.sh --test installs it when run as root)")
+    bindir = initdb[-1].parent
+    root = Path(tempfile.mkdtemp(prefix="fotoskhema-pg-"))
+    as_user: list[str] = []
+    if os.geteuid() == 0:  # initdb refuses to run as root: run the cluster as the package's user
+        shutil.chown(root, "postgres")
+        as_user = ["runuser", "-u", "postgres", "--"]
+    data, port = root / "data", free_port()
+    subprocess.run([*as_user, str(bindir / "initdb"), "-D", str(data), "-U", "postgres", "--auth=trust",
+                    "-E", "UTF8"], check=True, stdout=subprocess.DEVNULL)
+    server = subprocess.Popen([*as_user, str(bindir / "postgres"), "-D", str(data), "-p", str(port), "-k", str(root),
+                               "-c", "listen_addresses=127.0.0.1", "-c", "fsync=off"],
+                              stdout=subprocess.DEVNULL, stderr=(root / "server.log").open("wb"))
+    try:
+        wait_for_port("127.0.0.1", port, 30, server)
+        yield f"postgresql+psycopg2://postgres@127.0.0.1:{port}/"
+    finally:
+        stop([server])
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def fresh_database(base_url: str) -> str:
+    """Create an empty database on the cluster at ``base_url``; return its URL."""
+    import sqlalchemy
+
+    name = f"t_{uuid.uuid4().hex[:12]}"
+    engine = sqlalchemy.create_engine(base_url + "postgres", isolation_level="AUTOCOMMIT")
+    with engine.connect() as conn:
+        conn.execute(sqlalchemy.text(f'CREATE DATABASE "{name}"'))
+    engine.dispose()
+    return base_url + name
 
 
 @pytest.fixture
