@@ -40,7 +40,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "georeferenced": geo["georeferenced"],
         "georeference_note": geo["reason"],
         "crs": f"EPSG:{geo['epsg']}" if geo["georeferenced"] else None,
-        "gsd_m": geo["gsd_m"],
+        "gsd_m": geo["gsd_m"],  # the mosaic's pixel size
+        "gsd_original_m": geo["gsd_m"] * ref["scale"] if geo["gsd_m"] else None,  # the photos' own
         "gps_residual_rms_m": geo.get("gps_residual_rms_m"),
         "mosaic": {"width": geo["width"], "height": geo["height"], "transform": geo["transform"],
                    "footprint": _polygon(outline, geo), "coverage_fraction": coverage["area_fraction"]},
