@@ -95,6 +95,19 @@ def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:
         return [job_out(j) for j in s.scalars(query)]
 
 
+def retry_job(db: Database, queue: JobQueue, job_id: int) -> JobOut:
+    """Queue a failed or cancelled job again; stages that finished are skipped, so it resumes where it stopped."""
+    with db.session() as s:
+        job = s.get(Job, job_id)
+        if job is None:
+            raise NotFoundError(f"job {job_id} not found")
+        if job.status not in (JobStatus.failed.value, JobStatus.cancelled.value):
+            raise ConflictError(f"job {job_id} is {job.status}; only a failed or cancelled job can be retried")
+        job.status, job.error, job.progress_detail = JobStatus.queued.value, "", "retrying"
+        kind = job.kind
+    return _enqueue(db, queue, job_id, kind)
+
+
 def cancel_job(db: Database, job_id: int) -> JobOut:
     """Mark the job cancelled; its running stage stops at its next progress report, the rest never start."""
     with db.session() as s:

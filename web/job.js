@@ -25,7 +25,7 @@ export async function renderJob(view, root, jobId) {
   if (!view.alive) return;
   document.title = `Job ${jobId} · Fotoskhema`;
 
-  const progress = jobProgressCard(view, jobId, (next) => update(next));
+  const progress = jobProgressCard(view, jobId, (next) => update(next), () => followJob(view, jobId, update));
   const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
   const badge = statusBadge(job.status, { "data-testid": "job-status", role: "status", "aria-live": "polite" });
   const updated = h("span", {});
@@ -103,15 +103,32 @@ function followJob(view, jobId, onJob) {
   });
 }
 
-function jobProgressCard(view, jobId, onJob) {
+function jobProgressCard(view, jobId, onJob, onRetried) {
   const overall = progressBar("Overall job progress", { "data-testid": "job-progress" });
   const percent = h("span", { class: "percent" });
   const detail = h("p", { class: "stage-detail", "data-testid": "job-detail" });
   const stageList = h("ol", { class: "stages", "aria-label": "Stages" });
   const error = h("div", { class: "alert error", role: "alert", "data-testid": "job-error", hidden: true });
   const cancel = h("button", { type: "button", class: "btn danger", "data-testid": "cancel-job", hidden: true }, "Cancel job");
+  const retry = h("button", { type: "button", class: "btn", "data-testid": "retry-job", hidden: true }, "Retry job");
   const total = h("p", { class: "muted small" });
   let cancelling = false;
+
+  retry.addEventListener("click", async () => {
+    retry.disabled = true;
+    try {
+      const job = await api("POST", `/api/jobs/${jobId}/retry`);
+      if (!view.alive) return;
+      onJob(job);
+      onRetried();
+    } catch (err) {
+      if (!view.alive) return;
+      error.hidden = false;
+      error.textContent = `Could not retry: ${messageOf(err)}`;
+    } finally {
+      retry.disabled = false;
+    }
+  });
 
   cancel.addEventListener("click", async () => {
     cancelling = true;
@@ -142,6 +159,7 @@ function jobProgressCard(view, jobId, onJob) {
       error.replaceChildren(h("strong", {}, job.status === "failed" ? "Job failed: " : "Error: "), job.error);
     }
     cancel.hidden = !active;
+    retry.hidden = job.status !== "failed" && job.status !== "cancelled"; // finished stages are kept
     if (!active) cancelling = false;
     if (!cancelling) {
       cancel.disabled = false;
@@ -154,7 +172,7 @@ function jobProgressCard(view, jobId, onJob) {
   const node = h(
     "section",
     { class: "card", "aria-labelledby": "progress-heading" },
-    h("div", { class: "row spread" }, h("h2", { id: "progress-heading" }, "Progress"), cancel),
+    h("div", { class: "row spread" }, h("h2", { id: "progress-heading" }, "Progress"), h("div", { class: "row" }, retry, cancel)),
     h("div", { class: "overall" }, overall.node, percent),
     detail,
     error,

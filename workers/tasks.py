@@ -12,6 +12,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+from celery.exceptions import Ignore
+
 from api.db import Database, Job, JobStatus
 from api.settings import get_settings
 from workers.celery_app import app
@@ -103,7 +105,12 @@ def _record_done(rec: JobRecorder, stage: str, report: dict[str, Any]) -> str:
 def _register(stage: str) -> None:
     @app.task(name=task_name(stage), acks_late=True)
     def stage_task(job_id: int) -> str:
-        return execute_stage(job_id, stage)
+        status = execute_stage(job_id, stage)
+        if status not in (JobStatus.running.value, JobStatus.succeeded.value):
+            # Cancelled, or ended elsewhere: drop the rest of this chain, so that it never runs beside
+            # the chain of a retry.
+            raise Ignore()
+        return status
 
 
 for _stage in sorted({spec.name for specs in PIPELINES.values() for spec in specs}):

@@ -42,6 +42,12 @@ def cancel_job(job_id: int, db: DbDep) -> JobOut:
     return job_service.cancel_job(db, job_id)
 
 
+@router.post("/{job_id}/retry", status_code=202, response_model=JobOut)
+def retry_job(job_id: int, db: DbDep, queue: QueueDep) -> JobOut:
+    """Run a failed or cancelled job again from the stage where it stopped."""
+    return job_service.retry_job(db, queue, job_id)
+
+
 @router.get("/{job_id}/events")
 async def job_events(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> StreamingResponse:
     """Server-Sent Events: ``progress`` with the job JSON at every change, then ``end`` when it finishes."""

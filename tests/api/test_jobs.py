@@ -89,6 +89,26 @@ def test_cancel_then_cancel_again(client: TestClient, frames: list[Path]) -> Non
     assert client.post(f"/api/jobs/{job['id']}/cancel").status_code == 409
 
 
+def test_retry_resumes_from_the_stage_that_stopped(client: TestClient, api_settings, frames: list[Path],
+                                                    recording_queue: RecordingQueue) -> None:
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames),
+                                         "options": {"working_max_px": 400}}).json()
+    assert client.post(f"/api/jobs/{job['id']}/retry").status_code == 409  # still queued
+    db = Database(api_settings.resolved_database_url())
+    execute_stage(job["id"], "load_images", db=db, data_dir=api_settings.data_dir)
+    client.post(f"/api/jobs/{job['id']}/cancel")
+    frames_json = api_settings.data_dir / "jobs" / str(job["id"]) / "frames.json"
+    written = frames_json.stat().st_mtime_ns
+    retried = client.post(f"/api/jobs/{job['id']}/retry")
+    assert retried.status_code == 202 and retried.json()["status"] == "queued"
+    assert recording_queue.sent == [(job["id"], "mosaic"), (job["id"], "mosaic")]
+    for stage in job["stages"]:
+        status = execute_stage(job["id"], stage, db=db, data_dir=api_settings.data_dir)
+    assert status == "succeeded" and frames_json.stat().st_mtime_ns == written  # load_images was not redone
+    assert client.post(f"/api/jobs/{job['id']}/retry").status_code == 409  # succeeded jobs stay as they are
+    assert client.post("/api/jobs/999/retry").status_code == 404
+
+
 def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_settings, frames: list[Path]) -> None:
     """The Celery tasks' body, in-process: the record advances stage by stage and ends succeeded."""
     job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames),
