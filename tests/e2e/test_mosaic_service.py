@@ -99,6 +99,7 @@ def test_brighton_real_flight(live_service: LiveService, tmp_path: Path) -> None
     report = json.loads(download(live_service, job["id"], "report.json", tmp_path / "report.json").read_text())
     assert report["tie_point_rms_px"] < 1.0
     assert len(report["frames_used"]) == 6 and not report["frames_rejected"]
+    assert all(p["tie_point_rms_px"] < 1.5 for p in report["pairs"] if p["used"])
     # The GSD fitted to GPS agrees with the camera's: 40 m above ground, 20 mm (35 mm equivalent, 36 mm
     # frame width) over 4000 px gives 18 mm per pixel.
     assert abs(report["gsd_original_m"] - 40.0 * 36.0 / 20.0 / 4000) < 0.2 * 0.018

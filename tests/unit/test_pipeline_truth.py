@@ -50,8 +50,9 @@ def test_tie_point_rms_under_half_a_pixel(tilted) -> None:
     _, report, _ = tilted
     assert report["tie_point_rms_px"] < 0.5
     assert report["georeferenced"] is False and "GPS" in report["georeference_note"]
-    accepted = [p for p in report["pairs"] if p["accepted"]]
-    assert len(accepted) >= 9 and all(p["inliers"] >= 25 for p in accepted)
+    used = [p for p in report["pairs"] if p["used"]]
+    assert len(used) >= 9 and all(p["inliers"] >= 25 and p["tie_point_rms_px"] < 0.5 for p in used)
+    assert all(p["reason_unused"] for p in report["pairs"] if not p["used"])
 
 
 def test_mosaic_without_gps_is_a_pixel_raster(tilted) -> None:

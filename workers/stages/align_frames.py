@@ -27,11 +27,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     frames = {f["index"]: f for f in ws.load_frames()}
     pairs = [p for p in read_json(ws.pairs_file())["pairs"] if p["accepted"]]
     dropped: list[dict[str, Any]] = []
-    for _round in range(MAX_ROUNDS):
-        progress(_round / (MAX_ROUNDS + 1), f"adjustment round {_round + 1}")
+    for round_ in range(MAX_ROUNDS):
+        progress(round_ / MAX_ROUNDS, f"adjustment round {round_ + 1}")
         root, refined, ties = _adjust(ws, cfg, frames, pairs)
         bad = _inconsistent_pairs(refined, ties, MAX_PAIR_RMS_FACTOR * cfg.ransac_threshold_px)
-        if not bad:
+        if not bad or round_ == MAX_ROUNDS - 1:  # the last adjustment is always over the pairs kept
             break
         # A pair whose tie points stay far apart once every other pair has had its say is a false
         # overlap (repeated texture, moving objects): drop it and adjust again without it.

@@ -78,9 +78,15 @@ def _frame_entry(frame: dict[str, Any], footprint: np.ndarray, align: dict[str, 
 def _pair_entries(pairs: list[dict[str, Any]], frames: dict[int, dict[str, Any]],
                   align: dict[str, Any]) -> list[dict[str, Any]]:
     rms = {(p["i"], p["j"]): p["rms_px"] for p in align["pairs"]}
-    return [{"frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]], "matches": p["matches"],
-             "inliers": p["inliers"], "accepted": p["accepted"], "tie_point_rms_px": rms.get((p["i"], p["j"]))}
-            for p in pairs]
+    dropped = {(p["i"], p["j"]): p["reason"] for p in align["dropped_pairs"]}
+    entries = []
+    for p in pairs:
+        pair = (p["i"], p["j"])
+        reason = dropped.get(pair) or ("" if p["accepted"] else "too few homography inliers")
+        entries.append({"frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]], "matches": p["matches"],
+                        "inliers": p["inliers"], "used": p["accepted"] and pair not in dropped,
+                        "reason_unused": reason, "tie_point_rms_px": rms.get(pair)})
+    return entries
 
 
 def _stage_seconds(ws: JobWorkspace) -> dict[str, float]:
