@@ -68,3 +68,14 @@ def to_host(array: Any) -> np.ndarray:
     if isinstance(array, np.ndarray):
         return array
     return array.get()  # type: ignore[no-any-return]
+
+
+def ndimage_module(xp: ModuleType) -> ModuleType:
+    """``scipy.ndimage`` for NumPy arrays, ``cupyx.scipy.ndimage`` for CuPy arrays."""
+    if xp is np:
+        from scipy import ndimage  # noqa: PLC0415
+
+        return ndimage
+    from cupyx.scipy import ndimage as cupy_ndimage  # noqa: PLC0415 - only with CuPy present
+
+    return cupy_ndimage  # type: ignore[no-any-return]
