@@ -60,7 +60,8 @@ def scale_space(image: Any, first_octave: int = -1, octaves: int | None = None, 
     base = _resample(img, first_octave)
     present = assumed_blur * 2.0 ** (-first_octave)  # the input's blur in the first octave's pixels
     base = gaussian_blur(base, math.sqrt(max(sigma0**2 - present**2, 0.01)))
-    n = octave_count(*img.shape[:2], first_octave) if octaves is None else octaves
+    height, width = img.shape[:2]
+    n = octave_count(height, width, first_octave) if octaves is None else octaves
     sigmas = level_sigmas(levels, sigma0)
     for o in range(first_octave, first_octave + n):
         gaussians = [base]
