@@ -18,6 +18,11 @@ class MosaicConfig(BaseModel):
 
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where gpu_kernels run; auto: CUDA when present
     working_max_px: int = Field(2048, ge=256, le=20000)  # longest side of the working copies, px
+    # sift: rotation- and scale-invariant (UAV frames); harris_ncc: Harris corners matched by normalised
+    # cross-correlation of windows, for strips whose frames keep their orientation and scale (aerial)
+    feature_type: Literal["sift", "harris_ncc"] = "sift"
+    ncc_half_window: int = Field(7, ge=2, le=30)  # harris_ncc: window of 2h+1 px around each corner
+    ncc_threshold: float = Field(0.85, gt=0.0, lt=1.0)  # harris_ncc: lowest correlation of a match
     max_features: int = Field(6000, ge=100, le=100000)  # SIFT keypoints kept per frame
     ratio_test: float = Field(0.75, gt=0.0, lt=1.0)  # Lowe's nearest/second-nearest distance ratio
     ransac_threshold_px: float = Field(2.0, gt=0.0, le=50.0)  # USAC inlier threshold, working px

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -33,16 +34,8 @@ def tilted(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, d
 
 def test_frame_corners_within_one_pixel_of_truth(tilted) -> None:
     flight, report, ws = tilted
-    align = read_json(ws.alignment_file())
-    homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
-    assert sorted(homs) == list(range(10)) and not report["frames_rejected"]
-    # The mosaic plane is the reference frame's; the truth in that plane is inv(G_ref) @ G_k.
-    ref = np.linalg.inv(flight.homographies[align["reference"]])
-    corners = frame_corners_cv(flight)
-    predicted = np.concatenate([apply_homography(homs[k], corners) for k in sorted(homs)])
-    truth = np.concatenate([apply_homography(ref @ flight.homographies[k], corners) for k in sorted(homs)])
-    S = fit_similarity(predicted, truth)  # remove the global similarity (gauge freedom)
-    errors = np.linalg.norm(apply_homography(S, predicted) - truth, axis=1)
+    assert len(read_json(ws.alignment_file())["homographies"]) == 10 and not report["frames_rejected"]
+    errors = corner_errors(flight, ws)  # the mosaic plane is the reference frame's: truth there is inv(G_ref) G_k
     assert errors.max() < 1.0, f"worst corner {errors.max():.3f} px"
 
 
@@ -122,3 +115,42 @@ def test_report_lists_what_a_user_needs(nadir) -> None:
         assert lon.min() < glon < lon.max() and lat.min() < glat < lat.max()
     features = json.loads(ws.footprints_file().read_text())["features"]
     assert [f["properties"]["name"] for f in features] == [p.name for p in flight.paths]
+
+
+def corner_errors(flight: SyntheticFlight, ws: JobWorkspace) -> np.ndarray:
+    """Every frame corner's distance to its truth in the reference frame's plane, after removing the
+    global similarity, px."""
+    align = read_json(ws.alignment_file())
+    homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
+    ref = np.linalg.inv(flight.homographies[align["reference"]])
+    corners = frame_corners_cv(flight)
+    predicted = np.concatenate([apply_homography(homs[k], corners) for k in sorted(homs)])
+    truth = np.concatenate([apply_homography(ref @ flight.homographies[k], corners) for k in sorted(homs)])
+    S = fit_similarity(predicted, truth)
+    return np.linalg.norm(apply_homography(S, predicted) - truth, axis=1)
+
+
+def test_harris_ncc_aligns_an_aerial_strip(tmp_path: Path) -> None:
+    """Frames that keep their orientation and scale (a multi-lens aerial strip): Harris + NCC."""
+    flight = make_flight(tmp_path / "frames", n_frames=6, rotation_deg=1.5, scale_jitter=0.02, gps=True, seed=21)
+    report = process_directory(tmp_path / "frames", tmp_path / "job",
+                               {"working_max_px": 1024, "feature_type": "harris_ncc"})
+    ws = JobWorkspace(tmp_path / "job")
+    assert ws.load_stage_report("detect_features")["detector"] == "gpu_kernels-harris_ncc"
+    assert len(report["frames_used"]) == 6 and report["georeferenced"]
+    assert corner_errors(flight, ws).max() < 1.0
+    assert report["tie_point_rms_px"] < 0.8  # integer-pixel corners: about 0.4 px per point and axis
+
+
+@pytest.mark.gpu
+def test_gpu_sift_pipeline_matches_the_truth(tmp_path: Path) -> None:
+    from gpu_kernels.backend import cuda_available
+
+    if not cuda_available():
+        pytest.skip("needs CuPy and a CUDA device")
+    flight = make_flight(tmp_path / "frames", n_frames=8, layout="grid", rotation_deg=12, perspective=0.02,
+                         gps=False, seed=11)
+    report = process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 1024, "device": "cuda"})
+    ws = JobWorkspace(tmp_path / "job")
+    assert ws.load_stage_report("detect_features")["device"] == "cuda"
+    assert corner_errors(flight, ws).max() < 1.0 and report["tie_point_rms_px"] < 0.5

@@ -7,7 +7,7 @@ from typing import Any
 import cv2
 
 from gpu_kernels.backend import resolve_device
-from workers.algorithms.matching import detect_sift
+from workers.algorithms.features import detect
 from workers.config import MosaicConfig
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
@@ -15,14 +15,14 @@ from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``features/frame_NNNN.npz`` (points, descriptors) for every frame of ``frames.json``."""
     frames = ws.load_frames()
-    # The GPU SIFT of gpu_kernels plugs in here; until then every device runs OpenCV's SIFT on the CPU.
     device = resolve_device(cfg.device)
     counts: dict[str, int] = {}
     for k, frame in enumerate(frames):
         progress(k / len(frames), f"frame {k + 1}/{len(frames)}")
         gray = cv2.cvtColor(ws.load_working_image(frame["index"]), cv2.COLOR_BGR2GRAY)
-        points, descriptors = detect_sift(gray, cfg.max_features)
+        points, descriptors = detect(gray, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
         ws.save_features(frame["index"], points, descriptors)
         counts[frame["name"]] = len(points)
     progress(1.0, f"frame {len(frames)}/{len(frames)}")
-    return {"device": device, "detector": "opencv-sift", "keypoints": counts}
+    detector = "opencv-sift" if cfg.feature_type == "sift" and device == "cpu" else f"gpu_kernels-{cfg.feature_type}"
+    return {"device": device, "detector": detector, "keypoints": counts}

@@ -6,7 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.matching import estimate_homography, match_ratio, spread_subset
+from gpu_kernels.backend import resolve_device
+from workers.algorithms.features import match
+from workers.algorithms.matching import estimate_homography, spread_subset
 from workers.algorithms.pairing import candidate_pairs, local_metres
 from workers.config import MosaicConfig
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
@@ -35,7 +37,7 @@ def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, fa: dict[str, Any], fb: dic
                 features: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
     i, j = fa["index"], fb["index"]
     (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
-    matches = match_ratio(desc_i, desc_j, cfg.ratio_test)
+    matches = match(desc_i, desc_j, cfg.feature_type, resolve_device(cfg.device), cfg.ratio_test, cfg.ncc_threshold)
     H, inliers = estimate_homography(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
     n_in = int(inliers.sum())
     accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
