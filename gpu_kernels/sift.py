@@ -32,9 +32,13 @@ ORI_PEAK = 0.8
 
 @dataclass(frozen=True)
 class Keypoints:
-    """``xy`` (N, 2) float32 input pixels; ``sigma`` (N,) blur scale in input pixels; ``angle`` (N,)
-    degrees; ``octave`` (N,) int; ``sign`` (N,) +1 for a DoG maximum, -1 for a minimum; ``response``
-    (N,) |DoG| at the extremum; ``descriptors`` (N, d*d*n) float32, unit length."""
+    """SIFT keypoints, strongest first.
+
+    ``xy`` (N, 2) float64 input pixels (float64: integer pixel + float32 sub-pixel offset + tile origin
+    add up exactly, so tiled and untiled runs agree to the bit); ``sigma`` (N,) blur scale in input
+    pixels; ``angle`` (N,) degrees; ``octave`` (N,) int; ``sign`` (N,) +1 for a DoG maximum, -1 for a
+    minimum; ``response`` (N,) |DoG| at the extremum; ``descriptors`` (N, d*d*n) float32, unit length.
+    """
 
     xy: Any
     sigma: Any
@@ -61,7 +65,7 @@ def sift(image: Any, first_octave: int = -1, octaves: int | None = None, levels:
         x, y, s_float, s_int, contrast = x[owner], y[owner], s_float[owner], s_int[owner], contrast[owner]
         desc = _descriptors(octave, x, y, s_int, _octave_sigma(s_float, levels, sigma0), angles, layout, chunk)
         parts.append(Keypoints(
-            xy=(xp.stack([x, y], axis=1) * octave.spacing + offset).astype(xp.float32),
+            xy=xp.stack([x, y], axis=1).astype(xp.float64) * octave.spacing + offset,
             sigma=(_octave_sigma(s_float, levels, sigma0) * octave.spacing).astype(xp.float32),
             angle=angles, octave=xp.full(len(x), octave.index, xp.int32),
             sign=xp.sign(contrast).astype(xp.int8), response=xp.abs(contrast), descriptors=desc))
@@ -242,7 +246,7 @@ def _concat(parts: list[Keypoints], xp: Any, layout: tuple[int, int], max_featur
     d, n = layout
     if not parts:
         z = xp.zeros(0, xp.float32)
-        return Keypoints(xp.zeros((0, 2), xp.float32), z, z, xp.zeros(0, xp.int32), xp.zeros(0, xp.int8), z,
+        return Keypoints(xp.zeros((0, 2), xp.float64), z, z, xp.zeros(0, xp.int32), xp.zeros(0, xp.int8), z,
                          xp.zeros((0, d * d * n), xp.float32))
     fields = {f: xp.concatenate([getattr(p, f) for p in parts]) for f in Keypoints.__dataclass_fields__}
     order = xp.argsort(-fields["response"], kind="stable")
@@ -253,3 +257,46 @@ def _concat(parts: list[Keypoints], xp: Any, layout: tuple[int, int], max_featur
 
 def _host(array: Any) -> np.ndarray:
     return array.get() if hasattr(array, "get") else np.asarray(array)
+
+
+def tile_margin(octaves: int, first_octave: int = -1, levels: int = 3, sigma0: float = 1.6,
+                layout: tuple[int, int] = (4, 8), assumed_blur: float = 0.5) -> int:
+    """Input pixels around a tile on which every keypoint of the tile's core depends: the chain of
+    Gaussian blurs through the octaves, then the DoG, refinement and descriptor windows."""
+    sigmas = [sigma0 * 2.0 ** (s / levels) for s in range(levels + 3)]
+    per_octave = sum(math.ceil(3 * math.sqrt(b * b - a * a)) for a, b in zip(sigmas, sigmas[1:], strict=False))
+    present = assumed_blur * 2.0 ** (-first_octave)
+    base = math.ceil(3 * math.sqrt(max(sigma0**2 - present**2, 0.01)))
+    blur = 2.0**first_octave * base + sum(2.0**o * per_octave for o in range(first_octave, first_octave + octaves))
+    top = first_octave + octaves - 1
+    window = math.ceil(3 * sigmas[-1] * math.sqrt(2.0) * (layout[0] + 1) * 0.5) + MAX_STEPS + 3
+    return int(math.ceil(blur + 2.0**top * window)) + 2
+
+
+def sift_tiled(image: Any, tile: int, octaves: int, first_octave: int = -1, levels: int = 3, sigma0: float = 1.6,
+               layout: tuple[int, int] = (4, 8), max_features: int | None = None, **options: Any) -> Keypoints:
+    """``sift(image, octaves=octaves, ...)`` computed tile by tile, for images too large for one pass.
+
+    Tiles start on the coarsest octave's pixel grid and carry ``tile_margin`` of context, so every
+    keypoint is computed from exactly the pixels the untiled run would use; each is kept by the tile
+    whose core holds it. The result equals the untiled one.
+    """
+    xp = get_array_module(image)
+    align = 2 ** max(first_octave + octaves - 1, 0)
+    if tile % align:
+        raise ValueError(f"tile must be a multiple of {align} px (the coarsest octave's pixel)")
+    margin = tile_margin(octaves, first_octave, levels, sigma0, layout)
+    margin += -margin % align
+    h, w = image.shape[:2]
+    parts = []
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            ya, xa = max(y0 - margin, 0), max(x0 - margin, 0)
+            found = sift(image[ya:min(y0 + tile + margin, h), xa:min(x0 + tile + margin, w)], first_octave, octaves,
+                         levels, sigma0, layout=layout, **options)
+            x, y = found.xy[:, 0] + xa, found.xy[:, 1] + ya
+            core = (x >= x0 - 0.5) & (x < x0 + tile - 0.5) & (y >= y0 - 0.5) & (y < y0 + tile - 0.5)
+            fields = {f: getattr(found, f)[core] for f in Keypoints.__dataclass_fields__}
+            fields["xy"] = xp.stack([x[core], y[core]], axis=1)
+            parts.append(Keypoints(**fields))
+    return _concat(parts, xp, layout, max_features)

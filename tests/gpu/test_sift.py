@@ -81,3 +81,18 @@ def test_descriptor_layouts_and_rotation(xp) -> None:
     xy_a, xy_b = host(a.xy)[ia], host(b.xy)[ib]
     expected = np.column_stack([xy_a[:, 1], 199 - xy_a[:, 0]])  # rot90: (x, y) -> (y, W - 1 - x)
     assert len(ia) > 50 and (np.linalg.norm(expected - xy_b, axis=1) < 1.0).mean() > 0.95
+
+
+def test_tiled_detection_equals_untiled(xp) -> None:
+    from gpu_kernels.sift import sift_tiled, tile_margin
+
+    img = xp.asarray(textured_image(300, 520, seed=8))
+    whole = sift(img, octaves=3)
+    tiled = sift_tiled(img, tile=128, octaves=3)
+    assert tile_margin(3) < 300 and len(whole.xy) > 300
+
+    def rows(kp) -> np.ndarray:
+        table = np.column_stack([host(kp.xy), host(kp.sigma), host(kp.angle), host(kp.descriptors)])
+        return table[np.lexsort(table[:, :4].T[::-1])]
+
+    assert np.array_equal(rows(whole), rows(tiled))
