@@ -1,4 +1,4 @@
-"""gpu_kernels against OpenCV on the same inputs, in the same run: Harris and descriptor matching.
+"""gpu_kernels against OpenCV on the same inputs, in the same run: Harris, SIFT and descriptor matching.
 
 Run by hand from the repository root::
 
@@ -65,6 +65,23 @@ def harris_case(height: int, width: int, who: str) -> dict[str, Any]:
     return {"seconds": seconds, "peak_mib": peak_rss_mib(), "backend": backend}
 
 
+def sift_case(height: int, width: int, who: str) -> dict[str, Any]:
+    import cv2
+
+    from gpu_kernels.sift import sift
+    from tests.gpu.kernel_cases import textured_image
+
+    img = textured_image(height, width, seed=0)
+    if who == "opencv":
+        detector = cv2.SIFT_create()
+        seconds = timed(lambda: detector.detectAndCompute(img, None))
+        return {"seconds": seconds, "peak_mib": peak_rss_mib(), "backend": "opencv"}
+    xp, sync, backend = device_xp()
+    dev = xp.asarray(img)
+    seconds = timed(lambda: sift(dev), sync)
+    return {"seconds": seconds, "peak_mib": peak_rss_mib(), "backend": backend}
+
+
 def match_case(n: int, dim: int, masked: bool, who: str) -> dict[str, Any]:
     import cv2
     import numpy as np
@@ -93,6 +110,8 @@ def match_case(n: int, dim: int, masked: bool, who: str) -> dict[str, Any]:
 def cases(large: bool) -> list[tuple[str, Any, tuple[Any, ...]]]:
     out: list[tuple[str, Any, tuple[Any, ...]]] = [
         (f"Harris {h}x{w}", harris_case, (h, w)) for h, w in ((2000, 2000), (8000, 8000), (1800, 75000))]
+    sift_sizes = ((600, 800), (1336, 2008), (2672, 4016)) if large else ((600, 800), (1336, 2008))
+    out += [(f"SIFT {h}x{w}", sift_case, (h, w)) for h, w in sift_sizes]
     sizes = (1000, 10000, 20000) if large else (1000, 10000)
     for n in sizes:
         for dim in (128, 32):
@@ -103,7 +122,8 @@ def cases(large: bool) -> list[tuple[str, Any, tuple[Any, ...]]]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--large", action="store_true", help="also 20k x 20k matching (slow on a CPU)")
+    parser.add_argument("--large", action="store_true",
+                        help="also SIFT on 4016x2672 and 20k x 20k matching (slow on a CPU)")
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
     args = parser.parse_args(argv)
     rows = []
