@@ -17,6 +17,7 @@ class MosaicConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where gpu_kernels run; auto: CUDA when present
+    threads: int = Field(0, ge=0, le=64)  # threads matching frame pairs on the CPU; 0: one per CPU core
     working_max_px: int = Field(2048, ge=256, le=20000)  # longest side of the working copies, px
     # sift: rotation- and scale-invariant (UAV frames); harris_ncc: Harris corners matched by normalised
     # cross-correlation of windows, for strips whose frames keep their orientation and scale (aerial)

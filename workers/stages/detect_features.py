@@ -9,6 +9,7 @@ import cv2
 from gpu_kernels.backend import resolve_device
 from workers.algorithms.features import detect
 from workers.config import MosaicConfig
+from workers.parallel import ordered_map
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -16,13 +17,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     """Write ``features/frame_NNNN.npz`` (points, descriptors) for every frame of ``frames.json``."""
     frames = ws.load_frames()
     device = resolve_device(cfg.device)
-    counts: dict[str, int] = {}
-    for k, frame in enumerate(frames):
-        progress(k / len(frames), f"frame {k + 1}/{len(frames)}")
+
+    def one(frame: dict[str, Any]) -> int:
         gray = cv2.cvtColor(ws.load_working_image(frame["index"]), cv2.COLOR_BGR2GRAY)
         points, descriptors = detect(gray, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
         ws.save_features(frame["index"], points, descriptors)
-        counts[frame["name"]] = len(points)
-    progress(1.0, f"frame {len(frames)}/{len(frames)}")
+        return len(points)
+
+    # One frame at a time: OpenCV's SIFT already uses every core (measured: 2 threads gave no gain on
+    # 2 cores and doubled peak memory), and a GPU is one shared device.
+    counts = dict(zip([f["name"] for f in frames], ordered_map(one, frames, 1, progress, "frame"), strict=True))
     detector = "opencv-sift" if cfg.feature_type == "sift" and device == "cpu" else f"gpu_kernels-{cfg.feature_type}"
     return {"device": device, "detector": detector, "keypoints": counts}

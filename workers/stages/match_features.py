@@ -11,6 +11,7 @@ from workers.algorithms.features import match
 from workers.algorithms.matching import estimate_homography, spread_subset
 from workers.algorithms.pairing import candidate_pairs, local_metres
 from workers.config import MosaicConfig
+from workers.parallel import ordered_map, thread_count
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
 
 
@@ -21,12 +22,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     positions = local_metres(np.array([[f["gps"]["lat"], f["gps"]["lon"]] for f in frames])) if with_gps else None
     pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
     features = {f["index"]: ws.load_features(f["index"]) for f in frames}
-    results = []
-    for k, (a, b) in enumerate(pairs):
-        progress(k / max(len(pairs), 1), f"pair {k + 1}/{len(pairs)}")
-        results.append(_match_pair(ws, cfg, frames[a], frames[b], features))
+    threads = 1 if resolve_device(cfg.device) == "cuda" else thread_count(cfg.threads)
+    results = ordered_map(lambda ab: _match_pair(ws, cfg, frames[ab[0]], frames[ab[1]], features), pairs, threads,
+                          progress, "pair")
     write_json(ws.pairs_file(), {"pairs": results})
-    progress(1.0, f"pair {len(pairs)}/{len(pairs)}")
     accepted = [r for r in results if r["accepted"]]
     exhaustive = not with_gps and len(frames) <= cfg.exhaustive_max_frames
     return {"pairs_tried": len(results), "pairs_accepted": len(accepted),
