@@ -30,7 +30,7 @@ def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
     profile: dict[str, Any] = {
         "driver": "GTiff", "width": width, "height": height, "count": 3, "dtype": "uint8",
         "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate",
-        "photometric": "RGB", "BIGTIFF": "IF_SAFER",
+        "photometric": "RGB", "BIGTIFF": "IF_SAFER", "num_threads": "ALL_CPUS",
     }
     if epsg is not None and transform is not None:
         profile.update(crs=CRS.from_epsg(epsg), transform=Affine(*transform))
@@ -45,7 +45,7 @@ def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
 def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
     """Copy ``src`` into a COG at ``dst`` with overviews and its mask, atomically and window by window
     (``in_memory=False``: memory does not grow with the mosaic)."""
-    profile = dict(cog_profiles.get(compression))
+    profile = {**cog_profiles.get(compression), "num_threads": "ALL_CPUS"}  # compress on every core
     if compression == "jpeg":
         profile["photometric"] = "YCbCr"
     with atomic_path(dst) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256):

@@ -48,6 +48,14 @@ def test_tie_point_rms_under_half_a_pixel(tilted) -> None:
     assert all(p["reason_unused"] for p in report["pairs"] if not p["used"])
 
 
+def test_outputs_are_valid_cogs(tilted, nadir) -> None:
+    from rio_cogeo.cogeo import cog_validate
+
+    for _, _, ws in (tilted, nadir):
+        valid, errors, _warnings = cog_validate(str(ws.mosaic_file()), quiet=True)
+        assert valid, errors
+
+
 def test_mosaic_without_gps_is_a_pixel_raster(tilted) -> None:
     _, report, ws = tilted
     with rasterio.open(ws.mosaic_file()) as src:
