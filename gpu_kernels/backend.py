@@ -64,10 +64,10 @@ def to_device(array: np.ndarray, device: Device) -> Any:
 
 
 def to_host(array: Any) -> np.ndarray:
-    """A NumPy copy of a NumPy or CuPy array."""
-    if isinstance(array, np.ndarray):
-        return array
-    return array.get()  # type: ignore[no-any-return]
+    """A NumPy array of a CuPy array (copied to the host) or of anything NumPy takes (as is)."""
+    if hasattr(array, "__cuda_array_interface__"):
+        return array.get()  # type: ignore[no-any-return]
+    return np.asarray(array)
 
 
 def ndimage_module(xp: ModuleType) -> ModuleType:

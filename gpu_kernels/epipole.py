@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gpu_kernels.backend import get_array_module
+from gpu_kernels.backend import get_array_module, to_host
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,7 @@ def ransac_epipole(p1: Any, p2: Any, threshold_px: float = 1.0, hypotheses: int 
     n = len(p1)
     if n < 2:
         return Epipole(xp.asarray([0.0, 0.0, 1.0]), xp.zeros(n, bool))
-    T = _normaliser(np.concatenate([_to_host(p1), _to_host(p2)]))
+    T = _normaliser(np.concatenate([to_host(p1), to_host(p2)]).astype(np.float64))
     T_dev = xp.asarray(T)
     h1, h2 = _homogeneous(p1) @ T_dev.T, _homogeneous(p2) @ T_dev.T
     threshold = threshold_px * T[0, 0]  # in normalised units
@@ -92,6 +92,3 @@ def _homogeneous(points: Any) -> Any:
     pts = points.astype(xp.float64)
     return xp.concatenate([pts, xp.ones((len(pts), 1))], axis=1)
 
-
-def _to_host(array: Any) -> np.ndarray:
-    return array.get() if hasattr(array, "get") else np.asarray(array, dtype=np.float64)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from gpu_kernels.backend import get_array_module, ndimage_module
+from gpu_kernels.backend import get_array_module, ndimage_module, to_host
 from gpu_kernels.scale_space import Octave, scale_space
 
 BORDER = 5  # px of an octave where no extremum is looked for (OpenCV's SIFT_IMG_BORDER)
@@ -170,9 +170,9 @@ def _orientations(octave: Octave, x: Any, y: Any, s_int: Any, sigma: Any, max_or
     cx, cy = xp.rint(x).astype(xp.int64), xp.rint(y).astype(xp.int64)
     radius = xp.rint(3 * 1.5 * sigma).astype(xp.int64)
     hist = xp.zeros((len(x), ORI_BINS), xp.float32)
-    for rad in np.unique(_host(radius)).tolist():  # one vectorised pass per window size
+    for rad in np.unique(to_host(radius)).tolist():  # one vectorised pass per window size
         k = xp.nonzero(radius == rad)[0]
-        for lvl in np.unique(_host(s_int[k])).tolist():
+        for lvl in np.unique(to_host(s_int[k])).tolist():
             kk = k[s_int[k] == lvl]
             i, j, dx, dy, valid = _window_gradients(octave.gaussians[lvl], cx[kk], cy[kk], int(rad))
             weight = xp.exp(-(i * i + j * j) / (2.0 * (1.5 * sigma[kk, None]) ** 2)) * valid
@@ -201,9 +201,9 @@ def _descriptors(octave: Octave, x: Any, y: Any, s_int: Any, sigma: Any, angle: 
     cx, cy = xp.rint(x).astype(xp.int64), xp.rint(y).astype(xp.int64)
     hist_width = 3.0 * sigma
     radius = xp.rint(hist_width * math.sqrt(2.0) * (d + 1) * 0.5).astype(xp.int64)
-    for rad in np.unique(_host(radius)).tolist():
+    for rad in np.unique(to_host(radius)).tolist():
         group = xp.nonzero(radius == rad)[0]
-        for lvl in np.unique(_host(s_int[group])).tolist():
+        for lvl in np.unique(to_host(s_int[group])).tolist():
             members = group[s_int[group] == lvl]
             for start in range(0, len(members), chunk):
                 k = members[start:start + chunk]
@@ -253,10 +253,6 @@ def _concat(parts: list[Keypoints], xp: Any, layout: tuple[int, int], max_featur
     if max_features is not None:
         order = order[:max_features]
     return Keypoints(**{f: v[order] for f, v in fields.items()})
-
-
-def _host(array: Any) -> np.ndarray:
-    return array.get() if hasattr(array, "get") else np.asarray(array)
 
 
 def tile_margin(octaves: int, first_octave: int = -1, levels: int = 3, sigma0: float = 1.6,
