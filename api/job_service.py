@@ -8,6 +8,7 @@ from typing import Any
 
 from pydantic import ValidationError
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from api.db import Database, Flight, Job, JobStatus
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
@@ -79,11 +80,16 @@ def _enqueue(db: Database, queue: JobQueue, job_id: int, kind: str) -> JobOut:
         return job_out(job)
 
 
+def _job_or_404(session: Session, job_id: int) -> Job:
+    job = session.get(Job, job_id)
+    if job is None:
+        raise NotFoundError(f"job {job_id} not found")
+    return job
+
+
 def get_job(db: Database, job_id: int) -> JobOut:
     with db.session() as s:
-        job = s.get(Job, job_id)
-        if job is None:
-            raise NotFoundError(f"job {job_id} not found")
+        job = _job_or_404(s, job_id)
         return job_out(job)
 
 
@@ -98,9 +104,7 @@ def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:
 def retry_job(db: Database, queue: JobQueue, job_id: int) -> JobOut:
     """Queue a failed or cancelled job again; stages that finished are skipped, so it resumes where it stopped."""
     with db.session() as s:
-        job = s.get(Job, job_id)
-        if job is None:
-            raise NotFoundError(f"job {job_id} not found")
+        job = _job_or_404(s, job_id)
         if job.status not in (JobStatus.failed.value, JobStatus.cancelled.value):
             raise ConflictError(f"job {job_id} is {job.status}; only a failed or cancelled job can be retried")
         job.status, job.error, job.progress_detail = JobStatus.queued.value, "", "retrying"
@@ -111,9 +115,7 @@ def retry_job(db: Database, queue: JobQueue, job_id: int) -> JobOut:
 def cancel_job(db: Database, job_id: int) -> JobOut:
     """Mark the job cancelled; its running stage stops at its next progress report, the rest never start."""
     with db.session() as s:
-        job = s.get(Job, job_id)
-        if job is None:
-            raise NotFoundError(f"job {job_id} not found")
+        job = _job_or_404(s, job_id)
         if JobStatus(job.status).finished:
             raise ConflictError(f"job {job_id} is already {job.status}")
         job.status, job.progress_detail = JobStatus.cancelled.value, "cancelled by user"

@@ -20,11 +20,20 @@ from workers.algorithms.matching import detect_sift, match_ratio
 FeatureType = Literal["sift", "harris_ncc"]
 
 
+def uses_opencv(feature_type: FeatureType, device: Device) -> bool:
+    """SIFT on the CPU is OpenCV's (the fast path there); everything else runs on ``gpu_kernels``."""
+    return feature_type == "sift" and device == "cpu"
+
+
+def detector_name(feature_type: FeatureType, device: Device) -> str:
+    return "opencv-sift" if uses_opencv(feature_type, device) else f"gpu_kernels-{feature_type}"
+
+
 def detect(gray: np.ndarray, feature_type: FeatureType, device: Device, max_features: int,
            ncc_half_window: int = 7, cell_px: int = 64, per_cell: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints ``(N, 2) float32`` pixel (x, y) and descriptors ``(N, D) float32`` of a (H, W) uint8 image."""
-    if feature_type == "sift" and device == "cpu":
-        return detect_sift(gray, max_features)  # OpenCV: the fast path on a CPU
+    if uses_opencv(feature_type, device):
+        return detect_sift(gray, max_features)
     image = to_device(gray, device)
     if feature_type == "sift":
         found = sift(image, max_features=max_features)
@@ -38,7 +47,7 @@ def detect(gray: np.ndarray, feature_type: FeatureType, device: Device, max_feat
 def match(desc_a: np.ndarray, desc_b: np.ndarray, feature_type: FeatureType, device: Device, ratio: float,
           ncc_threshold: float) -> np.ndarray:
     """(M, 2) int64 index pairs (row of ``desc_a``, row of ``desc_b``) of mutual matches."""
-    if feature_type == "sift" and device == "cpu":
+    if uses_opencv(feature_type, device):
         return match_ratio(desc_a, desc_b, ratio)
     a, b = to_device(desc_a, device), to_device(desc_b, device)
     if feature_type == "sift":

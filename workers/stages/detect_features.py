@@ -7,7 +7,7 @@ from typing import Any
 import cv2
 
 from gpu_kernels.backend import resolve_device
-from workers.algorithms.features import detect
+from workers.algorithms.features import detect, detector_name
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -27,5 +27,4 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     # One frame at a time: OpenCV's SIFT already uses every core (measured: 2 threads gave no gain on
     # 2 cores and doubled peak memory), and a GPU is one shared device.
     counts = dict(zip([f["name"] for f in frames], ordered_map(one, frames, 1, progress, "frame"), strict=True))
-    detector = "opencv-sift" if cfg.feature_type == "sift" and device == "cpu" else f"gpu_kernels-{cfg.feature_type}"
-    return {"device": device, "detector": detector, "keypoints": counts}
+    return {"device": device, "detector": detector_name(cfg.feature_type, device), "keypoints": counts}

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from gpu_kernels.backend import resolve_device
+from gpu_kernels.backend import Device, resolve_device
 from workers.algorithms.features import match
 from workers.algorithms.matching import estimate_homography, spread_subset
 from workers.algorithms.pairing import candidate_pairs, local_metres
@@ -22,9 +22,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     positions = local_metres(np.array([[f["gps"]["lat"], f["gps"]["lon"]] for f in frames])) if with_gps else None
     pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
     features = {f["index"]: ws.load_features(f["index"]) for f in frames}
-    threads = 1 if resolve_device(cfg.device) == "cuda" else thread_count(cfg.threads)
-    results = ordered_map(lambda ab: _match_pair(ws, cfg, frames[ab[0]], frames[ab[1]], features), pairs, threads,
-                          progress, "pair")
+    device = resolve_device(cfg.device)
+    threads = 1 if device == "cuda" else thread_count(cfg.threads)
+    results = ordered_map(lambda ab: _match_pair(ws, cfg, device, frames[ab[0]], frames[ab[1]], features), pairs,
+                          threads, progress, "pair")
     write_json(ws.pairs_file(), {"pairs": results})
     accepted = [r for r in results if r["accepted"]]
     exhaustive = not with_gps and len(frames) <= cfg.exhaustive_max_frames
@@ -32,11 +33,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             "selection": "gps+order" if with_gps else ("exhaustive" if exhaustive else "order")}
 
 
-def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, fa: dict[str, Any], fb: dict[str, Any],
+def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: dict[str, Any], fb: dict[str, Any],
                 features: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
     i, j = fa["index"], fb["index"]
     (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
-    matches = match(desc_i, desc_j, cfg.feature_type, resolve_device(cfg.device), cfg.ratio_test, cfg.ncc_threshold)
+    matches = match(desc_i, desc_j, cfg.feature_type, device, cfg.ratio_test, cfg.ncc_threshold)
     H, inliers = estimate_homography(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
     n_in = int(inliers.sum())
     accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
