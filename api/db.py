@@ -77,7 +77,8 @@ class Job(Base):
     __tablename__ = "jobs"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    flight_id: Mapped[int] = mapped_column(ForeignKey("flights.id"), index=True)
+    # None for calibration jobs, whose photos are stored in the job's own folder
+    flight_id: Mapped[int | None] = mapped_column(ForeignKey("flights.id"), index=True, nullable=True)
     kind: Mapped[str] = mapped_column(String(32))
     status: Mapped[str] = mapped_column(String(16), default=JobStatus.queued.value, index=True)
     stage: Mapped[str] = mapped_column(String(64), default="")

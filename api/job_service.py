@@ -12,19 +12,20 @@ from sqlalchemy.orm import Session
 
 from api.db import Database, Flight, Job, JobStatus
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
+from api.gcp_service import gcp_file
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
 from api.settings import Settings
 from workers.config import build_config
-from workers.pipeline import stage_names
+from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import flight_folder, job_workspace
 
 
 def job_out(job: Job) -> JobOut:
     return JobOut(id=job.id, flight_id=job.flight_id, kind=job.kind, status=job.status, stage=job.stage,
-                  stages=stage_names(job.kind), progress=job.progress, progress_detail=job.progress_detail,
-                  timings=job.timings or {}, error=job.error, options=job.options or {},
-                  created_at=job.created_at, updated_at=job.updated_at)
+                  stages=stage_names(pipeline_key(job.kind, job.options)), progress=job.progress,
+                  progress_detail=job.progress_detail, timings=job.timings or {}, error=job.error,
+                  options=job.options or {}, created_at=job.created_at, updated_at=job.updated_at)
 
 
 def validated_config(kind: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -51,11 +52,14 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
         try:
             ws.save_config(config)
             ws.save_inputs(frames)
+            if (gcps := gcp_file(settings.data_dir, flight.id)) is not None:  # the job keeps its own copy
+                ws.gcp_dir().mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(gcps, ws.gcp_dir() / gcps.name)
         except OSError:
             shutil.rmtree(ws.root, ignore_errors=True)
             raise
         job_id = job.id
-    return _enqueue(db, queue, job_id, body.kind)
+    return enqueue(db, queue, job_id)
 
 
 def _frame_input(settings: Settings, flight_id: int, image: Any) -> dict[str, Any]:
@@ -64,23 +68,25 @@ def _frame_input(settings: Settings, flight_id: int, image: Any) -> dict[str, An
     return {**meta, "name": image.filename, "path": str(path), "image_id": image.id}
 
 
-def _enqueue(db: Database, queue: JobQueue, job_id: int, kind: str) -> JobOut:
+def enqueue(db: Database, queue: JobQueue, job_id: int) -> JobOut:
+    """Send a recorded job's pipeline; a queue that is down fails the job and answers 503."""
+    with db.session() as s:
+        job = job_or_404(s, job_id)
+        pipeline = pipeline_key(job.kind, job.options)
     try:
-        chain_id = queue.enqueue(job_id, kind)
+        chain_id = queue.enqueue(job_id, pipeline)
     except Exception as exc:  # the broker is down: say so, and don't leave a job that never runs
         with db.session() as s:
-            job = s.get(Job, job_id)
-            assert job is not None
-            job.status, job.error = JobStatus.failed.value, f"could not reach the job queue: {exc}"
+            failed = job_or_404(s, job_id)
+            failed.status, failed.error = JobStatus.failed.value, f"could not reach the job queue: {exc}"
         raise UnavailableError(f"the job queue is unavailable ({type(exc).__name__}); try again shortly") from None
     with db.session() as s:
-        job = s.get(Job, job_id)
-        assert job is not None
-        job.celery_id = chain_id
-        return job_out(job)
+        sent = job_or_404(s, job_id)
+        sent.celery_id = chain_id
+        return job_out(sent)
 
 
-def _job_or_404(session: Session, job_id: int) -> Job:
+def job_or_404(session: Session, job_id: int) -> Job:
     job = session.get(Job, job_id)
     if job is None:
         raise NotFoundError(f"job {job_id} not found")
@@ -89,7 +95,7 @@ def _job_or_404(session: Session, job_id: int) -> Job:
 
 def get_job(db: Database, job_id: int) -> JobOut:
     with db.session() as s:
-        job = _job_or_404(s, job_id)
+        job = job_or_404(s, job_id)
         return job_out(job)
 
 
@@ -104,18 +110,17 @@ def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:
 def retry_job(db: Database, queue: JobQueue, job_id: int) -> JobOut:
     """Queue a failed or cancelled job again; stages that finished are skipped, so it resumes where it stopped."""
     with db.session() as s:
-        job = _job_or_404(s, job_id)
+        job = job_or_404(s, job_id)
         if job.status not in (JobStatus.failed.value, JobStatus.cancelled.value):
             raise ConflictError(f"job {job_id} is {job.status}; only a failed or cancelled job can be retried")
         job.status, job.error, job.progress_detail = JobStatus.queued.value, "", "retrying"
-        kind = job.kind
-    return _enqueue(db, queue, job_id, kind)
+    return enqueue(db, queue, job_id)
 
 
 def cancel_job(db: Database, job_id: int) -> JobOut:
     """Mark the job cancelled; its running stage stops at its next progress report, the rest never start."""
     with db.session() as s:
-        job = _job_or_404(s, job_id)
+        job = job_or_404(s, job_id)
         if JobStatus(job.status).finished:
             raise ConflictError(f"job {job_id} is already {job.status}")
         job.status, job.progress_detail = JobStatus.cancelled.value, "cancelled by user"

@@ -7,6 +7,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from workers.config import Marks
+
 
 class FlightCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -63,7 +65,7 @@ class JobCreate(BaseModel):
 
 class JobOut(BaseModel):
     id: int
-    flight_id: int
+    flight_id: int | None  # None for calibration jobs
     kind: str
     status: str
     stage: str
@@ -85,3 +87,26 @@ class OutputOut(BaseModel):
 
 class OutputsOut(BaseModel):
     outputs: list[OutputOut]
+
+
+class CalibrationOut(BaseModel):
+    """A calibration or stereo-rig job and, once solved, its result (camera JSON, RMS, per-point errors)."""
+
+    job: JobOut
+    result: dict[str, Any] | None = None
+
+
+class MarksUpdate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    markers: list[Marks] = Field(min_length=1)  # per photo: new marks, or remove: true
+
+
+class MeasureRequest(BaseModel):
+    """Pixel positions of the same points in the left and right photo of a calibrated rig."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    left: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
+    right: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # same points, right photo
+    perturb_px: float = Field(0.5, ge=0.0, le=10.0)  # marking accuracy used for the uncertainty, px

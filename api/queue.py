@@ -12,8 +12,8 @@ from workers.pipeline import stage_names, task_name
 
 
 class JobQueue(Protocol):
-    def enqueue(self, job_id: int, kind: str) -> str:
-        """Send the job's stages; return an id for the chain."""
+    def enqueue(self, job_id: int, pipeline: str) -> str:
+        """Send the stages of ``pipeline`` (see workers.pipeline.PIPELINES); return an id for the chain."""
         ...
 
 
@@ -24,7 +24,7 @@ class CeleryQueue:
         self.app = make_celery(redis_url)
         self.queue = queue
 
-    def enqueue(self, job_id: int, kind: str) -> str:
+    def enqueue(self, job_id: int, pipeline: str) -> str:
         signatures = [self.app.signature(task_name(stage), args=(job_id,), immutable=True, queue=self.queue)
-                      for stage in stage_names(kind)]
+                      for stage in stage_names(pipeline)]
         return str(chain(*signatures).apply_async().id)

@@ -53,16 +53,33 @@ async def store_uploads(db: Database, settings: Settings, flight_id: int, files:
     if not files:
         raise InvalidInputError("no files in the request (multipart field 'files')")
     folder = flight_folder(settings.data_dir, flight_id)
-    folder.mkdir(parents=True, exist_ok=True)
     staged: list[StagedFile] = []
     try:
-        for upload in files:
-            staged.append(await _stage(upload, folder, settings))
+        staged = await stage_images(files, folder, settings)
         _refuse_duplicates(db, flight_id, staged)
         return _commit(db, flight_id, folder, staged)
     finally:
         for item in staged:
             item.temp_path.unlink(missing_ok=True)
+
+
+async def stage_images(files: list[UploadFile], folder: Path, settings: Settings) -> list[StagedFile]:
+    """Stream and validate ``files`` to temporary names in ``folder``; on any bad file, none stay."""
+    folder.mkdir(parents=True, exist_ok=True)
+    staged: list[StagedFile] = []
+    try:
+        for upload in files:
+            staged.append(await _stage(upload, folder, settings))
+    except BaseException:
+        for item in staged:
+            item.temp_path.unlink(missing_ok=True)
+        raise
+    return staged
+
+
+def stored_name(seq: int, item: StagedFile) -> str:
+    """The server's name for a staged photo: sequence number, random part, extension by format."""
+    return f"{seq:05d}_{uuid.uuid4().hex[:8]}.{EXTENSIONS.get(item.meta['format'], 'img')}"
 
 
 async def _stage(upload: UploadFile, folder: Path, settings: Settings) -> StagedFile:
@@ -107,7 +124,7 @@ def _commit(db: Database, flight_id: int, folder: Path, staged: list[StagedFile]
             seq = (s.scalar(select(func.max(Image.seq)).where(Image.flight_id == flight_id)) or 0) + 1
             images = []
             for n, item in enumerate(staged):
-                stored = f"{seq + n:05d}_{uuid.uuid4().hex[:8]}.{EXTENSIONS.get(item.meta['format'], 'img')}"
+                stored = stored_name(seq + n, item)
                 os.replace(item.temp_path, folder / stored)
                 moved.append(folder / stored)
                 image = Image(flight_id=flight_id, seq=seq + n, filename=item.display_name, stored_name=stored,

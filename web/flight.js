@@ -3,6 +3,7 @@
 import {
   ACTIVE,
   api,
+  apiForm,
   breadcrumb,
   detailOf,
   formatBytes,
@@ -212,12 +213,89 @@ function gpsText(gps) {
   return `${gps.lat.toFixed(5)}, ${gps.lon.toFixed(5)}${alt}`;
 }
 
+// The mosaic modes offered before starting a job, and the options each sends.
+const MODES = [
+  { value: "planar", label: "Planar", note: "flat ground, fastest", options: {} },
+  { value: "ortho", label: "Ortho", note: "photo-triangulation + orthorectification", options: { mode: "ortho" } },
+];
+
+function modeChoice() {
+  const radios = MODES.map((mode, i) => h("input", {
+    type: "radio", name: "mosaic-mode", id: `mode-${mode.value}`, value: mode.value, checked: i === 0,
+    "data-testid": `mode-${mode.value}`,
+  }));
+  const node = h(
+    "fieldset",
+    { class: "mode-choice" },
+    h("legend", {}, "Mosaic mode"),
+    MODES.map((mode, i) => h("label", { class: "check", for: `mode-${mode.value}` }, radios[i], " ",
+      h("span", {}, h("strong", {}, mode.label), h("span", { class: "muted" }, ` (${mode.note})`)))),
+  );
+  const options = () => {
+    const picked = MODES.find((mode, i) => radios[i].checked) || MODES[0];
+    return { ...picked.options };
+  };
+  return { node, options };
+}
+
+/** Upload a ground control point file (ODM gcp_list.txt or OpenSfM JSON); ortho jobs use it. */
+function gcpUpload(view, flightId) {
+  const input = h("input", {
+    id: "gcp-input", type: "file", accept: ".txt,.json,text/plain,application/json", class: "visually-hidden",
+    "data-testid": "gcp-input", "aria-describedby": "gcp-hint",
+  });
+  const status = h("p", { class: "muted small", role: "status", "aria-live": "polite", "data-testid": "gcp-status" });
+  const error = h("p", { class: "form-error", role: "alert", "data-testid": "gcp-error" });
+  input.addEventListener("change", async () => {
+    const file = input.files && input.files[0];
+    if (!file) return;
+    const form = new FormData();
+    form.append("file", file, file.name);
+    input.disabled = true;
+    error.textContent = "";
+    status.textContent = `Checking ${file.name}…`;
+    try {
+      const summary = await apiForm("PUT", `/api/flights/${flightId}/gcps`, form);
+      if (!view.alive) return;
+      status.textContent = gcpSummary(summary || {});
+    } catch (err) {
+      if (!view.alive) return;
+      status.textContent = "";
+      error.textContent = `Not stored (the previous GCP file, if any, is kept): ${messageOf(err)}`;
+    } finally {
+      input.disabled = false;
+      input.value = "";
+    }
+  });
+
+  return h(
+    "div",
+    { class: "gcp-upload" },
+    h("h3", {}, "Ground control points ", h("span", { class: "muted small" }, "(optional)")),
+    h("p", { id: "gcp-hint", class: "muted small" },
+      "Used by ortho jobs to tie the map to surveyed points: ODM gcp_list.txt or OpenSfM ground_control_points.json. A new file replaces the previous one."),
+    h("label", { for: "gcp-input", class: "btn small" }, "Upload GCP file…"),
+    input,
+    status,
+    error,
+  );
+}
+
+function gcpSummary(s) {
+  const plural = (n, word) => `${n ?? "?"} ${word}${n === 1 ? "" : "s"}`;
+  const missing = Array.isArray(s.images_not_in_flight) ? s.images_not_in_flight : [];
+  const tail = missing.length ? ` Not in this flight: ${missing.join(", ")}.` : "";
+  return `Stored ${s.file || "the GCP file"}: ${plural(s.points, "point")} (${s.with_position ?? "?"} with a position), `
+    + `${plural(s.observations, "observation")}.${tail}`;
+}
+
 function jobsPanel(view, flightId) {
   const hint = h("p", { id: "start-hint", class: "muted small" });
   const error = h("p", { class: "form-error", role: "alert" });
   const list = h("div", { class: "job-list" }, h("p", { class: "muted" }, "Loading jobs…"));
   const start = h("button", { type: "button", class: "btn primary", "data-testid": "start-job", "aria-describedby": "start-hint", disabled: true },
     "Start mosaic");
+  const mode = modeChoice();
   let timer = null;
   view.cleanups.push(() => clearTimeout(timer));
 
@@ -225,7 +303,7 @@ function jobsPanel(view, flightId) {
     start.disabled = true;
     error.textContent = "";
     try {
-      const job = await api("POST", "/api/jobs", { flight_id: flightId, kind: "mosaic", options: {} });
+      const job = await api("POST", "/api/jobs", { flight_id: flightId, kind: "mosaic", options: mode.options() });
       window.location.hash = `#/jobs/${job.id}`;
     } catch (err) {
       error.textContent = messageOf(err);
@@ -258,8 +336,11 @@ function jobsPanel(view, flightId) {
     "section",
     { class: "card", "aria-labelledby": "jobs-heading" },
     h("h2", { id: "jobs-heading" }, "Jobs"),
+    mode.node,
     h("div", { class: "start-row" }, start, hint),
     error,
+    gcpUpload(view, flightId),
+    h("h3", { class: "jobs-list-heading" }, "Jobs of this flight"),
     list,
   );
   return { node, refresh, setImageCount };

@@ -14,6 +14,8 @@ import {
   progressBar,
   statusBadge,
 } from "./lib.js";
+import { CALIBRATION_KINDS, showCalibration } from "./calibration.js";
+import { showQuality } from "./quality.js";
 import { showResult } from "./result-map.js";
 
 // -- Job page ------------------------------------------------------------------------------------
@@ -21,12 +23,15 @@ import { showResult } from "./result-map.js";
 export async function renderJob(view, root, jobId) {
   let job = await api("GET", `/api/jobs/${jobId}`);
   if (!view.alive) return;
-  const flight = await api("GET", `/api/flights/${job.flight_id}`).catch(() => null);
+  // Calibration jobs belong to no flight: no flight to name, no tiles to show.
+  const calibration = CALIBRATION_KINDS.has(job.kind) || job.flight_id === null;
+  const flight = calibration ? null : await api("GET", `/api/flights/${job.flight_id}`).catch(() => null);
   if (!view.alive) return;
   document.title = `Job ${jobId} · Fotoskhema`;
 
   const progress = jobProgressCard(view, jobId, (next) => update(next), () => followJob(view, jobId, update));
   const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
+  const quality = h("section", { class: "card quality", "aria-labelledby": "quality-heading", "data-testid": "quality", hidden: true });
   const badge = statusBadge(job.status, { "data-testid": "job-status", role: "status", "aria-live": "polite" });
   const updated = h("span", {});
   let resultShown = false;
@@ -39,15 +44,15 @@ export async function renderJob(view, root, jobId) {
     progress.update(job);
     if (job.status === "succeeded" && !resultShown) {
       resultShown = true;
-      showResult(view, job, result).catch((err) => {
-        if (view.alive) result.replaceChildren(h("p", { class: "alert error", role: "alert" }, `Could not load the result: ${messageOf(err)}`));
-      });
+      showOutcome(view, job, result, quality, calibration);
     }
   }
 
   const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
   root.append(
-    breadcrumb(["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]),
+    calibration
+      ? breadcrumb(["Calibrations"], [`Job #${jobId}`])
+      : breadcrumb(["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]),
     h(
       "div",
       { class: "page-head row" },
@@ -56,10 +61,28 @@ export async function renderJob(view, root, jobId) {
     ),
     h("p", { class: "muted small" }, `Created ${formatDate(job.created_at)} · last update `, updated),
     result, // above the progress once the job has succeeded: the map is what one came for
+    quality,
     progress.node,
   );
   update(job);
   if (!TERMINAL.has(job.status)) followJob(view, jobId, update);
+}
+
+/** A succeeded job's result: the calibration, or the mosaic map and its Quality card. */
+function showOutcome(view, job, result, quality, calibration) {
+  const failed = (card, what) => (err) => {
+    if (!view.alive) return;
+    card.hidden = false;
+    card.replaceChildren(h("p", { class: "alert error", role: "alert" }, `Could not load the ${what}: ${messageOf(err)}`));
+  };
+  if (calibration) {
+    showCalibration(view, job, result).catch(failed(result, "result"));
+    return;
+  }
+  // One outputs request for both cards; the Quality card does not wait for the map's tiles.
+  const outputs = api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []);
+  showResult(view, job, result, outputs).catch(failed(result, "result"));
+  outputs.then((list) => showQuality(view, list, quality)).catch(failed(quality, "quality report"));
 }
 
 /** Follow a job's Server-Sent Events; fall back to polling if the stream keeps failing. */
@@ -182,6 +205,8 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
   return { node, update };
 }
 
+const READY = { mosaic: "the mosaic is ready", calibration: "the camera is calibrated", stereo_calibration: "the rig is calibrated" };
+
 function stageSentence(job) {
   const stage = job.stage ? humanize(job.stage) : "";
   switch (job.status) {
@@ -190,7 +215,7 @@ function stageSentence(job) {
     case "running":
       return [stage || "Starting", job.progress_detail].filter(Boolean).join(" — ");
     case "succeeded":
-      return "Finished: the mosaic is ready.";
+      return `Finished: ${READY[job.kind] || "the result is ready"}.`;
     case "cancelled":
       return `Cancelled${stage ? ` during ${stage.toLowerCase()}` : ""}.`;
     case "failed":

@@ -47,6 +47,26 @@ export function formatDate(iso) {
   return date.toLocaleString(undefined, { dateStyle: "medium", timeStyle: "short" });
 }
 
+/** A number with `digits` decimals and an optional unit; "–" when it is missing or not finite. */
+export function formatNumber(value, digits = 2, unit = "") {
+  if (typeof value !== "number" || !Number.isFinite(value)) return "–";
+  return unit ? `${value.toFixed(digits)} ${unit}` : value.toFixed(digits);
+}
+
+/** A ground distance in metres: cm below 1 m, m above; "–" when missing. */
+export function formatMetres(m) {
+  if (typeof m !== "number" || !Number.isFinite(m)) return "–";
+  return Math.abs(m) < 1 ? `${(m * 100).toFixed(1)} cm` : `${m.toFixed(2)} m`;
+}
+
+/** A value and its standard deviation: "536.12 ± 0.41"; the ± part only when the sigma is known. */
+export function formatPlusMinus(value, sigma, digits = 2, unit = "") {
+  const text = formatNumber(value, digits);
+  if (text === "–") return text;
+  const tail = unit ? ` ${unit}` : "";
+  return typeof sigma === "number" && Number.isFinite(sigma) ? `${text} ± ${sigma.toFixed(digits)}${tail}` : `${text}${tail}`;
+}
+
 export function formatSeconds(s) {
   if (typeof s !== "number" || !Number.isFinite(s)) return "";
   if (s < 1) return `${Math.round(s * 1000)} ms`;
@@ -94,6 +114,32 @@ export function progressBar(label, attrs) {
   return { node, set, tone };
 }
 
+/** A definition list of [term, value, attrs?] rows (value: text or node). */
+export function factList(rows, attrs) {
+  return h("dl", Object.assign({ class: "facts" }, attrs || {}),
+    rows.map(([term, value, ddAttrs]) => [h("dt", {}, term), h("dd", ddAttrs || {}, value)]));
+}
+
+/**
+ * A table in a scrolling box. `columns`: [{ label, num }] (num: right-aligned figures); `rows`: arrays
+ * of cells (text or nodes), or { cells, attrs } to give the row attributes. An empty list shows `empty`.
+ */
+export function dataTable({ caption, columns, rows, attrs, empty, scroll = true }) {
+  if (!rows.length) return h("p", { class: "empty small" }, empty || "None.");
+  const cls = (col) => (col.num ? "num" : null);
+  const table = h(
+    "table",
+    Object.assign({ class: "table compact" }, attrs || {}),
+    caption ? h("caption", { class: "visually-hidden" }, caption) : null,
+    h("thead", {}, h("tr", {}, columns.map((col) => h("th", { scope: "col", class: cls(col) }, col.label)))),
+    h("tbody", {}, rows.map((row) => {
+      const { cells, attrs: rowAttrs } = Array.isArray(row) ? { cells: row, attrs: {} } : row;
+      return h("tr", rowAttrs, cells.map((cell, i) => h("td", { class: cls(columns[i] || {}) }, cell)));
+    })),
+  );
+  return scroll ? h("div", { class: "table-scroll" }, table) : table;
+}
+
 // -- API -----------------------------------------------------------------------------------------
 
 export class ApiError extends Error {
@@ -136,6 +182,14 @@ export async function api(method, path, body) {
   return data;
 }
 
+/** Send a multipart form (file uploads) and answer the JSON, like `api`. */
+export async function apiForm(method, path, form) {
+  const response = await fetch(path, { method, body: form, headers: { Accept: "application/json" } });
+  const data = parseJson(await response.text());
+  if (!response.ok) throw new ApiError(response.status, detailOf(data, response.status, response.statusText));
+  return data;
+}
+
 export function messageOf(err) {
   if (err instanceof ApiError) return err.message;
   return `Could not reach the server (${err && err.message ? err.message : err}).`;
@@ -151,7 +205,9 @@ export function breadcrumb(...items) {
   const list = h("ol", {});
   items.forEach((item, i) => {
     const last = i === items.length - 1;
-    list.append(h("li", {}, last ? h("span", { "aria-current": "page" }, item[0]) : h("a", { href: item[1] }, item[0])));
+    // An item without a link (a section with no page of its own) is plain text.
+    const node = last ? h("span", { "aria-current": "page" }, item[0]) : item[1] ? h("a", { href: item[1] }, item[0]) : h("span", {}, item[0]);
+    list.append(h("li", {}, node));
   });
   return h("nav", { class: "breadcrumb", "aria-label": "Breadcrumb" }, list);
 }

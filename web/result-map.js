@@ -4,16 +4,17 @@ import { api, formatBytes, getConfig, h } from "./lib.js";
 
 // -- Result: map and downloads ------------------------------------------------------------------
 
-export async function showResult(view, job, card) {
+/** Fill `card` with the mosaic map; `outputs` (optional) is a promise of the job's outputs list. */
+export async function showResult(view, job, card, outputs) {
   card.hidden = false;
   card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the mosaic…"));
-  const [tilejson, outputs, config] = await Promise.all([
+  const [tilejson, outputList, config] = await Promise.all([
     api("GET", `/tiles/${job.id}/tilejson.json`),
-    api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []),
+    outputs || api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []),
     getConfig(),
   ]);
   if (!view.alive) return;
-  const byName = Object.fromEntries(outputs.map((o) => [o.name, o]));
+  const byName = Object.fromEntries(outputList.map((o) => [o.name, o]));
   const georeferenced = tilejson.georeferenced !== false;
 
   const mapNode = h("div", { class: "map", id: "map", "data-testid": "map", role: "region", "aria-label": "Mosaic map" });

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+DistortionTerm = Literal["k1", "k2", "k3", "t1", "t2"]
+Convention = Literal["distort_ideal", "restore_ideal"]
 
 
 class MosaicConfig(BaseModel):
@@ -16,6 +19,10 @@ class MosaicConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    # planar: frames chained by homographies onto one plane (flat ground, no camera model);
+    # ortho: photo-triangulation (bundle adjustment with GPS and GCPs), then every frame is
+    # orthorectified onto the ground plane through its adjusted camera
+    mode: Literal["planar", "ortho"] = "planar"
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where gpu_kernels run; auto: CUDA when present
     threads: int = Field(0, ge=0, le=64)  # threads matching frame pairs on the CPU; 0: one per CPU core
     working_max_px: int = Field(2048, ge=256, le=20000)  # longest side of the working copies, px
@@ -39,9 +46,74 @@ class MosaicConfig(BaseModel):
     block_px: int = Field(1024, ge=256, le=8192)  # output window edge when composing, px
     cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec for the mosaic
     min_gps_frames: int = Field(3, ge=2)  # georeference only with at least this many GPS fixes
+    # -- mode "ortho" only ----------------------------------------------------------------------
+    camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
+    self_calibrate: list[Literal["focal", "k1", "k2"]] = ["focal", "k1", "k2"]  # intrinsics the adjustment refines
+    gps_sigma_m: float = Field(5.0, gt=0.0, le=1000.0)  # accuracy of the frames' GPS positions, m
+    gcp_sigma_m: float = Field(0.02, gt=0.0, le=100.0)  # accuracy of the ground control points, m
+    checkpoints: list[str] = []  # GCP names held out of the adjustment and reported as check points
+    robust_loss_px: float = Field(2.0, gt=0.0, le=50.0)  # Huber scale of reprojection residuals, px
+    outlier_px: float = Field(4.0, gt=0.0, le=100.0)  # observations beyond this after a first solve are dropped
+    ground_elevation_m: float | None = None  # ortho plane height; None: median height of the tie points
+    max_ground_range: float = Field(4.0, gt=0.0, le=100.0)  # ortho: clip frames to this many flying heights
 
 
-JOB_KINDS: dict[str, type[BaseModel]] = {"mosaic": MosaicConfig}
+class CalibrationConfig(BaseModel):
+    """Options of a ``calibration`` job: one camera from chessboards, marked points or straight lines."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    # chessboard: corners found by OpenCV; markers: image points marked by hand with their board
+    # coordinates; plumb_line: distortion only, from points along lines that are straight in the world
+    method: Literal["chessboard", "markers", "plumb_line"] = "chessboard"
+    pattern: tuple[int, int] = (9, 6)  # chessboard inner corners (columns, rows)
+    square_mm: float = Field(25.0, gt=0.0, le=10000.0)  # chessboard square edge, mm
+    convention: Convention = "distort_ideal"  # how the distortion terms are applied (see camera.py)
+    terms: list[DistortionTerm] = ["k1", "k2", "t1", "t2", "k3"]  # distortion terms to estimate
+    markers: list[Marks] = []  # marked points per image; for chessboard jobs they replace detected corners
+    lines: list[list[tuple[float, float]]] = []  # plumb_line: pixel points along each straight line
+    image_size: tuple[int, int] | None = None  # plumb_line without images: (width, height) px
+    camera: dict[str, Any] | None = None  # plumb_line: intrinsics to normalise with (camera JSON)
+
+    _pattern = field_validator("pattern")(lambda v: _check_pattern(v))
+
+
+class Marks(BaseModel):
+    """Points marked on one image: pixel positions and their board coordinates (mm)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    image: str = Field(min_length=1)  # the image's file name as uploaded
+    image_points: list[tuple[float, float]] = []  # pixel (x, y)
+    board_points: list[tuple[float, float, float]] = []  # board (X, Y, Z), mm; same order
+    remove: bool = False  # true: drop this image from the solve
+
+
+class StereoCalibrationConfig(BaseModel):
+    """Options of a ``stereo_calibration`` job: a two-camera rig from paired chessboard images."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pattern: tuple[int, int] = (9, 6)  # chessboard inner corners (columns, rows)
+    square_mm: float = Field(25.0, gt=0.0, le=10000.0)  # chessboard square edge, mm
+    convention: Convention = "distort_ideal"  # distortion convention of both cameras
+    terms: list[DistortionTerm] = ["k1", "k2", "t1", "t2", "k3"]  # distortion terms per camera
+    left_camera: dict[str, Any] | None = None  # fixed intrinsics (camera JSON); None: calibrated here
+    right_camera: dict[str, Any] | None = None  # same, right camera
+
+    _pattern = field_validator("pattern")(lambda v: _check_pattern(v))
+
+
+def _check_pattern(pattern: tuple[int, int]) -> tuple[int, int]:
+    if min(pattern) < 2 or max(pattern) > 100:
+        raise ValueError("a chessboard pattern counts 2-100 inner corners per side, e.g. [9, 6]")
+    return pattern
+
+
+CalibrationConfig.model_rebuild()
+
+JOB_KINDS: dict[str, type[BaseModel]] = {"mosaic": MosaicConfig, "calibration": CalibrationConfig,
+                                         "stereo_calibration": StereoCalibrationConfig}
 
 
 def build_config(kind: str, options: dict[str, Any] | None) -> BaseModel:

@@ -23,6 +23,7 @@ class StageSpec:
     weight: float  # share of the job's progress bar, relative to the other stages
 
 
+# A pipeline is a job kind, or a kind and the option that changes its stages ("mosaic.ortho").
 PIPELINES: dict[str, tuple[StageSpec, ...]] = {
     "mosaic": (
         StageSpec("load_images", 10),
@@ -33,31 +34,57 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("compose_mosaic", 30),
         StageSpec("write_report", 3),
     ),
+    "mosaic.ortho": (
+        StageSpec("load_images", 10),
+        StageSpec("detect_features", 20),
+        StageSpec("match_features", 25),
+        StageSpec("adjust_bundle", 15),
+        StageSpec("orthorectify_frames", 5),
+        StageSpec("compose_mosaic", 30),
+        StageSpec("write_report", 3),
+    ),
+    "calibration": (StageSpec("detect_corners", 60), StageSpec("calibrate_camera", 40)),
+    "calibration.plumb_line": (StageSpec("fit_plumb_line", 100),),
+    "stereo_calibration": (StageSpec("detect_corners", 60), StageSpec("calibrate_stereo", 40)),
 }
+# The option of a kind that selects a variant pipeline, and its default.
+VARIANT_OPTIONS = {"mosaic": ("mode", "planar"), "calibration": ("method", "chessboard")}
 
 
 class PipelineError(Exception):
     """A stage cannot go on; the message tells the user what is wrong with their data or options."""
 
 
-def stage_names(kind: str) -> list[str]:
-    return [spec.name for spec in PIPELINES[kind]]
+def pipeline_key(kind: str, options: dict[str, Any] | None) -> str:
+    """The pipeline that runs a job of ``kind`` with ``options`` (as requested, defaults not merged)."""
+    option, default = VARIANT_OPTIONS.get(kind, ("", ""))
+    variant = f"{kind}.{(options or {}).get(option, default)}" if option else kind
+    return variant if variant in PIPELINES else kind
+
+
+def job_kind(pipeline: str) -> str:
+    """The job kind (and so the config model) of a pipeline."""
+    return pipeline.split(".", 1)[0]
+
+
+def stage_names(pipeline: str) -> list[str]:
+    return [spec.name for spec in PIPELINES[pipeline]]
 
 
 def task_name(stage: str) -> str:
     return f"fotoskhema.{stage}"
 
 
-def overall_progress(kind: str, stage: str, fraction: float) -> float:
+def overall_progress(pipeline: str, stage: str, fraction: float) -> float:
     """Job progress 0-100 when ``stage`` is ``fraction`` done, weighting the stages."""
-    specs = PIPELINES[kind]
+    specs = PIPELINES[pipeline]
     total = sum(s.weight for s in specs)
     done = 0.0
     for spec in specs:
         if spec.name == stage:
             return round(100.0 * (done + spec.weight * min(max(fraction, 0.0), 1.0)) / total, 2)
         done += spec.weight
-    raise ValueError(f"stage {stage!r} is not part of a {kind!r} job")
+    raise ValueError(f"stage {stage!r} is not part of the {pipeline!r} pipeline")
 
 
 def stage_function(stage: str) -> Callable[..., dict[str, Any]]:
@@ -65,12 +92,12 @@ def stage_function(stage: str) -> Callable[..., dict[str, Any]]:
     return module.run  # type: ignore[no-any-return]
 
 
-def run_stage(ws: JobWorkspace, kind: str, stage: str, progress: ProgressFn = noop_progress,
+def run_stage(ws: JobWorkspace, pipeline: str, stage: str, progress: ProgressFn = noop_progress,
               rerun: bool = False) -> dict[str, Any]:
     """Run one stage over ``ws`` unless its report says it already ran; save and return its report."""
     if not rerun and (done := ws.load_stage_report(stage)) is not None:
         return done
-    cfg = build_config(kind, ws.load_config())
+    cfg = build_config(job_kind(pipeline), ws.load_config())
     started = time.perf_counter()
     report = stage_function(stage)(ws, cfg, progress=progress)
     report["wall_seconds"] = round(time.perf_counter() - started, 3)
@@ -99,7 +126,8 @@ def process_directory(src_dir: Path, out_dir: Path, options: dict[str, Any] | No
     ws = JobWorkspace(out_dir)
     ws.save_config(build_config("mosaic", options).model_dump())
     ws.save_inputs(frames)
-    for name in stage_names("mosaic"):
+    pipeline = pipeline_key("mosaic", options)
+    for name in stage_names(pipeline):
         stage_progress = (lambda f, d, _n=name: progress(_n, f, d)) if progress else noop_progress
-        run_stage(ws, "mosaic", name, stage_progress)
+        run_stage(ws, pipeline, name, stage_progress)
     return dict(read_json(ws.report_file()))

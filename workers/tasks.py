@@ -17,7 +17,7 @@ from celery.exceptions import Ignore
 from api.db import Database, Job, JobStatus
 from api.settings import get_settings
 from workers.celery_app import app
-from workers.pipeline import PIPELINES, PipelineError, overall_progress, run_stage, task_name
+from workers.pipeline import PIPELINES, PipelineError, overall_progress, pipeline_key, run_stage, task_name
 from workers.workspace import job_workspace
 
 log = logging.getLogger(__name__)
@@ -35,8 +35,8 @@ def _database() -> Database:
 class JobRecorder:
     """Writes a running stage's state into the job record, at most every ``interval`` seconds."""
 
-    def __init__(self, db: Database, job_id: int, kind: str, stage: str, interval: float = 0.5) -> None:
-        self.db, self.job_id, self.kind, self.stage, self.interval = db, job_id, kind, stage, interval
+    def __init__(self, db: Database, job_id: int, pipeline: str, stage: str, interval: float = 0.5) -> None:
+        self.db, self.job_id, self.pipeline, self.stage, self.interval = db, job_id, pipeline, stage, interval
         self._last = 0.0
 
     def update(self, **fields: Any) -> str:
@@ -56,7 +56,7 @@ class JobRecorder:
         if now - self._last < self.interval and fraction < 1.0:
             return
         self._last = now
-        status = self.update(progress=overall_progress(self.kind, self.stage, fraction), progress_detail=detail)
+        status = self.update(progress=overall_progress(self.pipeline, self.stage, fraction), progress_detail=detail)
         if status == JobStatus.cancelled.value:
             raise JobCancelledError(f"job {self.job_id} was cancelled")
 
@@ -71,14 +71,14 @@ def execute_stage(job_id: int, stage: str, db: Database | None = None, data_dir:
         job = s.get(Job, job_id)
         if job is None or JobStatus(job.status).finished:
             return job.status if job else "missing"
-        kind = job.kind
-    rec = JobRecorder(db, job_id, kind, stage)
+        pipeline = pipeline_key(job.kind, job.options)
+    rec = JobRecorder(db, job_id, pipeline, stage)
     if rec.update(status=JobStatus.running.value, stage=stage,
-                  progress=overall_progress(kind, stage, 0.0), progress_detail="") == "cancelled":
+                  progress=overall_progress(pipeline, stage, 0.0), progress_detail="") == "cancelled":
         return "cancelled"
     ws = job_workspace(data_dir or get_settings().data_dir, job_id)
     try:
-        report = run_stage(ws, kind, stage, progress=rec.progress)
+        report = run_stage(ws, pipeline, stage, progress=rec.progress)
     except JobCancelledError:
         return "cancelled"
     except PipelineError as exc:
@@ -96,8 +96,8 @@ def _record_done(rec: JobRecorder, stage: str, report: dict[str, Any]) -> str:
         job = s.get(Job, rec.job_id)
         assert job is not None
         job.timings = {**job.timings, stage: report.get("wall_seconds", 0.0)}
-        job.progress = overall_progress(rec.kind, stage, 1.0)
-        if stage == PIPELINES[rec.kind][-1].name and job.status == JobStatus.running.value:
+        job.progress = overall_progress(rec.pipeline, stage, 1.0)
+        if stage == PIPELINES[rec.pipeline][-1].name and job.status == JobStatus.running.value:
             job.status, job.progress, job.progress_detail = JobStatus.succeeded.value, 100.0, "done"
         return job.status
 

@@ -77,6 +77,10 @@ class JobWorkspace:
     def save_config(self, config: dict[str, Any]) -> None:
         write_json(self.config_file(), config)
 
+    def gcp_dir(self) -> Path:
+        """The job's copy of its flight's GCP file (``gcp_list.txt`` or ``ground_control_points.json``)."""
+        return self.root / "gcp"
+
     # -- load_images ----------------------------------------------------------------------------
     def frames_file(self) -> Path:
         return self.root / "frames.json"
@@ -86,6 +90,14 @@ class JobWorkspace:
 
     def save_frames(self, frames: list[dict[str, Any]], rejected: list[dict[str, Any]]) -> None:
         write_json(self.frames_file(), {"frames": frames, "rejected": rejected})
+
+    def load_composed_frames(self) -> dict[int, dict[str, Any]]:
+        """Frames by index as ``compose_mosaic`` sees them: orthorectified frames may be cut to fewer rows."""
+        sizes = read_json(self.alignment_file()).get("frame_sizes", {})
+        frames = {f["index"]: f for f in self.load_frames()}
+        for k, (width, height) in sizes.items():
+            frames[int(k)] = {**frames[int(k)], "width": width, "height": height}
+        return frames
 
     def load_rejected_frames(self) -> list[dict[str, Any]]:
         return list(read_json(self.frames_file())["rejected"])
@@ -116,12 +128,20 @@ class JobWorkspace:
     def matches_file(self, pair: tuple[int, int]) -> Path:
         return self.root / "matches" / f"pair_{pair[0]:04d}_{pair[1]:04d}.npz"
 
-    def save_matches(self, pair: tuple[int, int], points_i: np.ndarray, points_j: np.ndarray) -> None:
-        _save_npz(self.matches_file(pair), points_i=points_i, points_j=points_j)
+    def save_matches(self, pair: tuple[int, int], points_i: np.ndarray, points_j: np.ndarray,
+                     index_i: np.ndarray | None = None, index_j: np.ndarray | None = None) -> None:
+        """Tie points of a pair, and (for tracks) the indices of their features in each frame."""
+        indices = {} if index_i is None or index_j is None else {"index_i": index_i, "index_j": index_j}
+        _save_npz(self.matches_file(pair), points_i=points_i, points_j=points_j, **indices)
 
     def load_matches(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         with np.load(self.matches_file(pair)) as data:
             return data["points_i"], data["points_j"]
+
+    def load_match_indices(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Feature indices ``(M,) int`` of a pair's tie points in frame i and frame j."""
+        with np.load(self.matches_file(pair)) as data:
+            return data["index_i"], data["index_j"]
 
     def pairs_file(self) -> Path:
         return self.root / "pairs.json"
@@ -132,6 +152,30 @@ class JobWorkspace:
 
     def georef_file(self) -> Path:
         return self.root / "georef.json"
+
+    # -- calibration jobs -----------------------------------------------------------------------
+    def corners_file(self) -> Path:
+        """Chessboard corners found per photo (``detect_corners``)."""
+        return self.root / "corners.json"
+
+    def calibration_file(self) -> Path:
+        """The result of a calibration or stereo job: camera/rig JSON, RMS, per-point errors."""
+        return self.root / "calibration.json"
+
+    # -- adjust_bundle, orthorectify_frames ------------------------------------------------------
+    def cameras_file(self) -> Path:
+        """Adjusted cameras, poses and the triangulation report (``adjust_bundle``)."""
+        return self.root / "cameras.json"
+
+    def ortho_image_file(self, index: int) -> Path:
+        return self.root / "ortho" / f"frame_{index:04d}.npy"
+
+    def load_compose_image(self, index: int, mmap: bool = False) -> np.ndarray:
+        """The image ``compose_mosaic`` warps: the undistorted ortho frame if there is one, else the working copy."""
+        path = self.ortho_image_file(index)
+        if path.exists():
+            return np.load(path, mmap_mode="r" if mmap else None)
+        return self.load_working_image(index, mmap)
 
     # -- outputs --------------------------------------------------------------------------------
     def mosaic_file(self) -> Path:
@@ -159,6 +203,8 @@ class JobWorkspace:
             "mosaic.tif": self.mosaic_file(),
             "report.json": self.report_file(),
             "footprints.geojson": self.footprints_file(),
+            "calibration.json": self.calibration_file(),
+            "cameras.json": self.cameras_file(),
         }
         return {name: path for name, path in named.items() if path.exists()}
 

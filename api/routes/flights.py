@@ -8,8 +8,9 @@ from sqlalchemy import func, select
 from api.db import Flight, Image
 from api.deps import DbDep, SettingsDep
 from api.errors import NotFoundError
+from api.gcp_service import MAX_GCP_BYTES, store_gcps
 from api.models import FlightCreate, FlightDetail, FlightOut, ImageOut, UploadResult
-from api.uploads import store_uploads
+from api.uploads import display_name, store_uploads
 
 router = APIRouter(prefix="/api/flights", tags=["flights"])
 
@@ -60,3 +61,12 @@ async def upload_images(flight_id: int, db: DbDep, settings: SettingsDep,
     """Validate and store photos; answers every file's metadata, or a 4xx naming the bad file."""
     images = await store_uploads(db, settings, flight_id, files)
     return UploadResult(images=[image_out(i) for i in images])
+
+
+@router.put("/{flight_id}/gcps")
+async def upload_gcps(flight_id: int, db: DbDep, settings: SettingsDep,
+                      file: UploadFile = File(..., description="gcp_list.txt (ODM) or ground_control_points.json "
+                                                               "(OpenSfM)")) -> dict:
+    """Set the flight's ground control points, used by ``mode: "ortho"`` jobs; replaces earlier ones."""
+    content = await file.read(MAX_GCP_BYTES + 1)
+    return store_gcps(db, settings.data_dir, flight_id, display_name(file.filename), content)

@@ -104,3 +104,30 @@ def test_unknown_flight_and_bad_bodies(client: TestClient, frames: list[Path]) -
     assert client.post("/api/flights", json={"name": ""}).status_code == 422
     assert client.post("/api/flights", json={"name": "x", "bogus": 1}).status_code == 422
     assert client.post(f"/api/flights/{new_flight(client)}/images").status_code == 422
+
+
+def test_ground_control_points_are_checked_then_stored(client: TestClient, api_settings, tmp_path: Path) -> None:
+    flight = make_flight(tmp_path, n_frames=2, frame_size=(320, 240), seed=2)
+    flight_id = client.post("/api/flights", json={"name": "with gcps"}).json()["id"]
+    files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in flight.paths]
+    assert client.post(f"/api/flights/{flight_id}/images", files=files).status_code == 201
+    good = ("WGS84 UTM 15N\n"
+            "271000.0 3294000.0 12.5 100 120 frame_000.jpg gcp1\n"
+            "271000.0 3294000.0 12.5 300 110 frame_001.jpg gcp1\n"
+            "271020.0 3294010.0 11.0 50 60 frame_001.jpg gcp2\n")
+    response = client.put(f"/api/flights/{flight_id}/gcps", files={"file": ("gcp_list.txt", good.encode())})
+    assert response.status_code == 200, response.text
+    assert response.json() == {"file": "gcp_list.txt", "points": 2, "with_position": 2, "observations": 3,
+                               "images_not_in_flight": []}
+    stored = api_settings.data_dir / "flights" / str(flight_id) / "gcp_list.txt"
+    assert stored.read_text() == good
+    for content, fragment in [(good.replace("12.5 300", "x 300"), "line 3"), (b"\xff\xfe".decode("latin-1"), "UTF-8"),
+                              ("EPSG:nonsense\n1 2 3 4 5 a.jpg", "line 1"), ("{}", "points")]:
+        name = "ground_control_points.json" if content == "{}" else "gcp_list.txt"
+        bad = client.put(f"/api/flights/{flight_id}/gcps", files={"file": (name, content.encode("latin-1"))})
+        assert bad.status_code == 422 and fragment in bad.json()["detail"], bad.text
+    assert stored.read_text() == good  # a bad file never replaces the good one
+    assert client.put("/api/flights/999/gcps", files={"file": ("gcp_list.txt", good.encode())}).status_code == 404
+    job = client.post("/api/jobs", json={"flight_id": flight_id, "options": {"mode": "ortho"}}).json()
+    assert job["stages"][3:5] == ["adjust_bundle", "orthorectify_frames"]
+    assert (api_settings.data_dir / "jobs" / str(job["id"]) / "gcp" / "gcp_list.txt").read_text() == good

@@ -9,138 +9,15 @@ no CDN, no basemap unless configured).
 from __future__ import annotations
 
 import re
-import shutil
-from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import pytest
 
+from tests.browser.support import ARTIFACTS, JOB_TIMEOUT_MS, MOSAIC_TILES_SETTLED_JS, TERMINAL_STATUS_JS, wait_for
 from tests.conftest import shared_data
 from tests.scenes import make_flight
 
 pytestmark = pytest.mark.browser
-
-CHROMIUM = Path("/usr/bin/chromium")
-LAUNCH_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
-ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts"
-JOB_TIMEOUT_MS = 180_000
-TILE_URL = re.compile(r"/tiles/\d+/\d+/\d+/\d+\.png")
-TERMINAL_STATUS_JS = """() => {
-  const badge = document.querySelector('[data-testid="job-status"]');
-  return badge !== null && ['succeeded', 'failed', 'cancelled'].includes(badge.textContent.trim());
-}"""
-MOSAIC_TILES_SETTLED_JS = """() => {
-  const tiles = [...document.querySelectorAll('[data-testid="map"] img.leaflet-tile')]
-    .filter((img) => img.src.includes('/tiles/'));
-  // complete: loaded or failed (a failed tile is reported by the response and console checks); one
-  // zoom level left and every tile faded in: Leaflet has finished swapping levels.
-  const zooms = new Set(tiles.map((img) => img.src.split('/tiles/')[1].split('/')[1]));
-  return tiles.length > 0 && zooms.size === 1
-    && tiles.every((img) => img.complete && getComputedStyle(img).opacity === '1');
-}"""
-
-
-def _chromium() -> str | None:
-    if CHROMIUM.exists():
-        return str(CHROMIUM)
-    return shutil.which("chromium")
-
-
-@dataclass
-class PageWatch:
-    """Everything a page said or asked for that a test may want to assert on."""
-
-    console_errors: list[str] = field(default_factory=list)
-    page_errors: list[str] = field(default_factory=list)
-    request_urls: list[str] = field(default_factory=list)
-    failed_requests: list[str] = field(default_factory=list)
-    error_responses: list[str] = field(default_factory=list)
-    tile_responses: list[tuple[str, int, str]] = field(default_factory=list)
-
-    def attach(self, page: Any) -> None:
-        page.on("console", self._on_console)
-        page.on("pageerror", lambda exc: self.page_errors.append(str(exc)))
-        page.on("request", lambda request: self.request_urls.append(request.url))
-        page.on("requestfailed", self._on_request_failed)
-        page.on("response", self._on_response)
-
-    def _on_console(self, message: Any) -> None:
-        if message.type == "error":
-            self.console_errors.append(f"{message.text} ({message.location.get('url', '')})")
-
-    def _on_request_failed(self, request: Any) -> None:
-        # ERR_ABORTED is the page cancelling its own request: Leaflet drops the tiles of a zoom level
-        # it left before they arrived. Anything else (refused, reset, DNS) is a real failure.
-        if "ERR_ABORTED" not in (request.failure or ""):
-            self.failed_requests.append(f"{request.url}: {request.failure}")
-
-    def _on_response(self, response: Any) -> None:
-        if response.status >= 400:
-            self.error_responses.append(f"{response.status} {response.url}")
-        if TILE_URL.search(response.url):
-            content_type = response.headers.get("content-type", "")
-            self.tile_responses.append((response.url, response.status, content_type))
-
-    def summary(self) -> str:
-        problems = self.page_errors + self.console_errors + self.error_responses + self.failed_requests
-        return "; ".join(problems) or "no errors recorded"
-
-    def assert_clean(self, service_url: str) -> None:
-        assert not self.page_errors, f"uncaught page errors: {self.page_errors}"
-        assert not self.console_errors, f"console errors: {self.console_errors}"
-        assert not self.error_responses, f"HTTP error answers: {self.error_responses}"
-        assert not self.failed_requests, f"failed requests: {self.failed_requests}"
-        # data: and blob: URLs are the page's own inline resources, never network traffic.
-        foreign = [
-            url
-            for url in self.request_urls
-            if not url.startswith(service_url.rstrip("/") + "/") and not url.startswith(("data:", "blob:"))
-        ]
-        assert not foreign, f"requests that left the service: {foreign}"
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    executable = _chromium()
-    if executable is None:
-        pytest.skip("Chromium not found at /usr/bin/chromium nor on PATH: browser tests need it")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
-    with sync_api.sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=executable, args=LAUNCH_ARGS)
-        yield chromium
-        chromium.close()
-
-
-@pytest.fixture
-def watched_page(browser: Any) -> Iterator[tuple[Any, PageWatch]]:
-    context = browser.new_context(viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    page.set_default_timeout(20_000)
-    watch = PageWatch()
-    watch.attach(page)
-    yield page, watch
-    context.close()
-
-
-def _wait_for(page: Any, script: str, timeout_ms: int, watch: PageWatch, what: str) -> None:
-    """Wait for ``script`` to return true; on timeout, fail saying what the page reported meanwhile."""
-    from playwright.sync_api import TimeoutError as PlaywrightTimeoutError
-
-    try:
-        page.wait_for_function(script, timeout=timeout_ms)
-    except PlaywrightTimeoutError:
-        pytest.fail(f"{what} within {timeout_ms / 1000:.0f} s; the page reported: {watch.summary()}")
-
 
 @pytest.fixture(params=["synthetic", "brighton"])
 def photos(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, list[Path], str]:
@@ -176,7 +53,7 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> No
     start.click()
     page.wait_for_url(re.compile(r"#/jobs/\d+$"))
     expect(page.get_by_test_id("job-progress")).to_be_visible()
-    _wait_for(page, TERMINAL_STATUS_JS, JOB_TIMEOUT_MS, watch, "the job did not finish")
+    wait_for(page, TERMINAL_STATUS_JS, JOB_TIMEOUT_MS, watch, "the job did not finish")
     status = page.get_by_test_id("job-status").inner_text().strip()
     if status != "succeeded":
         error = page.get_by_test_id("job-error")
@@ -192,7 +69,7 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> No
     expect(page.locator('[data-testid="map"] img.leaflet-tile-loaded[src*="/tiles/"]').first).to_be_visible(
         timeout=30_000
     )
-    _wait_for(page, MOSAIC_TILES_SETTLED_JS, 30_000, watch, "the mosaic tiles did not settle")
+    wait_for(page, MOSAIC_TILES_SETTLED_JS, 30_000, watch, "the mosaic tiles did not settle")
     footprints_url = page.get_by_test_id("download-footprints").get_attribute("href")
     n_footprints = len(page.request.get(footprints_url).json()["features"])
     assert n_footprints >= 2, "a mosaic of overlapping frames has at least two footprints"
@@ -202,6 +79,8 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> No
     mosaic_layer = page.locator('[data-testid="map"] .leaflet-tile-pane .leaflet-layer').last
     expect(mosaic_layer).to_have_css("opacity", "0.5")
     page.get_by_test_id("opacity").fill("100")
+    expect(page.get_by_test_id("quality")).to_be_visible()  # the report's Quality card, below the map
+    expect(page.get_by_test_id("frames-used")).to_contain_text(re.compile(rf"^\d+ of {len(paths)}$"))
     ARTIFACTS.mkdir(exist_ok=True)  # before the checks below, so a failing run leaves its picture too
     page.screenshot(path=str(ARTIFACTS / f"viewer_{name}.png"), full_page=True)
 

@@ -121,3 +121,40 @@ def _tile_of(lon: float, lat: float, z: int) -> tuple[int, int]:
     x = int((lon + 180.0) / 360.0 * n)
     y = int((1.0 - np.arcsinh(np.tan(np.radians(lat))) / np.pi) / 2.0 * n)
     return x, y
+
+
+def test_ortho_job_with_ground_control(live_service: LiveService, tmp_path: Path) -> None:
+    """Photo-triangulation with GCPs through the service: controls fit, a held-out checkpoint is
+    reported with its error, and the orthomosaic comes out in the flight's UTM zone."""
+    from tests.terrain_scenes import make_terrain_flight
+
+    flight = make_terrain_flight(tmp_path / "terrain", rows=3, per_row=3, frame_size=(640, 480), seed=5)
+    flight_id = upload_flight(live_service, "terrain", flight.paths)
+    gcp_text = gcp_list_for(flight, [(-8.0, 5.0), (9.0, -6.0), (10.0, 8.0), (-9.0, -7.0), (0.5, 0.5)])
+    response = httpx.put(f"{live_service.url}/api/flights/{flight_id}/gcps",
+                         files={"file": ("gcp_list.txt", gcp_text.encode())}, timeout=10)
+    assert response.status_code == 200 and response.json()["with_position"] == 5, response.text
+    job = run_job(live_service, flight_id, {"mode": "ortho", "checkpoints": ["g4"]})
+    assert job["stages"][3:5] == ["adjust_bundle", "orthorectify_frames"]
+    report = json.loads(download(live_service, job["id"], "report.json", tmp_path / "report.json").read_text())
+    tri = report["triangulation"]
+    assert tri["registered"] == tri["total"] == 9 and tri["rms_px"] < 0.5 and "gcp" in tri["datum"]
+    gcps = {g["id"]: g for g in tri["gcps"]}
+    assert [gcps[f"g{k}"]["role"] for k in range(5)] == ["control"] * 4 + ["checkpoint"]
+    assert all(gcps[f"g{k}"]["error_3d_m"] < 0.1 for k in range(4))
+    assert gcps["g4"]["error_3d_m"] < 0.2 and tri["checkpoint_rmse_m"] == pytest.approx(gcps["g4"]["error_3d_m"])
+    with rasterio.open(download(live_service, job["id"], "mosaic.tif", tmp_path / "ortho.tif")) as src:
+        assert src.crs.to_epsg() == flight.epsg and src.overviews(1)
+
+
+def gcp_list_for(flight, spots: list[tuple[float, float]]) -> str:
+    """ODM's gcp_list.txt for ground points at world (x, y): UTM position and every photo that sees them."""
+    lines = [f"EPSG:{flight.epsg}"]
+    for k, (x, y) in enumerate(spots):
+        ground = np.array([x, y, float(flight.height(np.array(x), np.array(y)))])
+        east, north = flight.origin_utm[0] + x, flight.origin_utm[1] + y
+        for path, R, C in zip(flight.paths, flight.rotations, flight.centres, strict=True):
+            px = flight.camera.project(((ground - C) @ R.T)[None])[0]
+            if 20 <= px[0] < flight.camera.width - 20 and 20 <= px[1] < flight.camera.height - 20:
+                lines.append(f"{east:.3f} {north:.3f} {ground[2]:.3f} {px[0]:.2f} {px[1]:.2f} {path.name} g{k}")
+    return "\n".join(lines) + "\n"

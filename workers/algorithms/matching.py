@@ -81,6 +81,34 @@ def estimate_homography(points_a: np.ndarray, points_b: np.ndarray,
     return H / H[2, 2], mask.ravel().astype(bool)
 
 
+def estimate_fundamental(points_a: np.ndarray, points_b: np.ndarray,
+                         threshold_px: float) -> tuple[np.ndarray | None, np.ndarray]:
+    """Robust fundamental matrix ``b^T F a = 0`` with OpenCV's USAC (MAGSAC++), for scenes with relief.
+
+    A homography holds only for a plane (or a camera that only rotates); views of 3D scenes from
+    different places agree only through the epipolar constraint, which is what triangulation needs.
+
+    Parameters
+    ----------
+    points_a, points_b : (N, 2) float, pixel (x, y), row k of each is one putative match.
+    threshold_px : inlier distance to the epipolar line, pixels.
+
+    Returns
+    -------
+    F : (3, 3) float64, or None when fewer than 8 matches or no model.
+    inliers : (N,) bool
+    """
+    n = len(points_a)
+    if n < 8:
+        return None, np.zeros(n, bool)
+    cv2.setRNGSeed(n)
+    F, mask = cv2.findFundamentalMat(points_a.astype(np.float64), points_b.astype(np.float64),
+                                     cv2.USAC_MAGSAC, threshold_px, 0.9999, 10000)
+    if F is None or mask is None or F.shape != (3, 3):
+        return None, np.zeros(n, bool)
+    return F, mask.ravel().astype(bool)
+
+
 def spread_subset(points: np.ndarray, image_size: tuple[int, int], limit: int, seed: int = 0) -> np.ndarray:
     """Indices of at most ``limit`` points spread over the image: one per grid cell, cells in turn.
 

@@ -26,7 +26,7 @@ OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains an
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``mosaic.tif`` (COG, RGB + mask) and ``footprints.geojson``-ready ``coverage.json``."""
     geo = read_json(ws.georef_file())
-    frames = {f["index"]: f for f in ws.load_frames()}
+    frames = ws.load_composed_frames()
     homs = {int(k): np.array(H) for k, H in read_json(ws.alignment_file())["homographies"].items()}
     out_to_plane = np.array(geo["output_to_plane"])
     # output pixel -> frame pixel, for every frame
@@ -74,7 +74,7 @@ def _compose_block(ws: JobWorkspace, frames: dict[int, dict[str, Any]], to_frame
         weight = feather_weights(map_x, map_y, f["width"], f["height"], feather_px)
         if not weight.any():
             continue
-        pixels = _sample(ws.load_working_image(k, mmap=True), map_x, map_y, weight > 0)
+        pixels = _sample(ws.load_compose_image(k, mmap=True), map_x, map_y, weight > 0)
         acc += weight[..., None] * pixels * gains[k][None, None, :].astype(np.float32)
         wsum += weight
     mask = wsum > 0
@@ -105,7 +105,7 @@ def _gains_and_coverage(ws: JobWorkspace, frames: dict[int, dict[str, Any]], to_
         f = frames[k]
         map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
         inside = feather_weights(map_x, map_y, f["width"], f["height"], 2.0 / r) >= 1.0
-        image = ws.load_working_image(k, mmap=True)
+        image = ws.load_compose_image(k, mmap=True)
         images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
         masks.append(inside)
     gains = np.ones((len(keys), 3))

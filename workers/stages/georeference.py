@@ -26,10 +26,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
                               for k, H in homs.items()])
     fit, reason = _fit_gps(frames, homs, cfg.min_gps_frames)
     if fit is not None:
-        grid = _map_grid(corners, fit["plane_to_map"])
+        grid = map_grid(corners, fit["plane_to_map"])
         result = {"georeferenced": True, "reason": "", **fit, **grid}
     else:
-        grid = _pixel_grid(corners)
+        grid = pixel_grid(corners)
         result = {"georeferenced": False, "reason": reason, "epsg": None, "plane_to_map": np.eye(3).tolist(),
                   "gsd_m": None, **grid}
     if result["width"] * result["height"] > MAX_OUTPUT_PIXELS:
@@ -61,7 +61,7 @@ def _fit_gps(frames: dict[int, dict[str, Any]], homs: dict[int, np.ndarray],
             "gps_residuals_m": {frames[k]["name"]: float(r) for k, r in zip(with_gps, residuals, strict=True)}}, ""
 
 
-def _map_grid(plane_corners: np.ndarray, plane_to_map: list[list[float]]) -> dict[str, Any]:
+def map_grid(plane_corners: np.ndarray, plane_to_map: list[list[float]]) -> dict[str, Any]:
     """A north-up grid in map units covering every frame, at the plane's own resolution."""
     M = np.array(plane_to_map)
     gsd = similarity_scale(M)
@@ -74,7 +74,7 @@ def _map_grid(plane_corners: np.ndarray, plane_to_map: list[list[float]]) -> dic
             "output_to_plane": (np.linalg.inv(M) @ affine).tolist()}
 
 
-def _pixel_grid(plane_corners: np.ndarray) -> dict[str, Any]:
+def pixel_grid(plane_corners: np.ndarray) -> dict[str, Any]:
     """The plane itself, shifted so the mosaic starts at pixel (0, 0); no map coordinates."""
     x0, y0 = np.floor(plane_corners.min(axis=0))
     x1, y1 = np.ceil(plane_corners.max(axis=0))

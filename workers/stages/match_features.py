@@ -1,4 +1,8 @@
-"""Stage ``match_features``: ratio-test matches and a USAC homography for each candidate pair."""
+"""Stage ``match_features``: ratio-test matches and a USAC model for each candidate pair.
+
+The model is a homography in planar mode (the frames are chained by it) and a fundamental matrix in
+ortho mode (the scene may have relief; the bundle adjustment triangulates it).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ import numpy as np
 
 from gpu_kernels.backend import Device, resolve_device
 from workers.algorithms.features import match
-from workers.algorithms.matching import estimate_homography, spread_subset
+from workers.algorithms.matching import estimate_fundamental, estimate_homography, spread_subset
 from workers.algorithms.pairing import candidate_pairs, local_metres
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
@@ -38,14 +42,16 @@ def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: dict[st
     i, j = fa["index"], fb["index"]
     (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
     matches = match(desc_i, desc_j, cfg.feature_type, device, cfg.ratio_test, cfg.ncc_threshold)
-    H, inliers = estimate_homography(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
+    estimate = estimate_fundamental if cfg.mode == "ortho" else estimate_homography
+    H, inliers = estimate(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
     n_in = int(inliers.sum())
     accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
     record: dict[str, Any] = {"i": i, "j": j, "matches": len(matches), "inliers": n_in, "accepted": bool(accepted),
-                              "H": H.tolist() if H is not None else None}
+                              "H" if cfg.mode == "planar" else "F": H.tolist() if H is not None else None}
     if accepted:
         good = matches[inliers]
         keep = spread_subset(pts_i[good[:, 0]], (fa["width"], fa["height"]), cfg.max_tie_points_per_pair)
-        ws.save_matches((i, j), pts_i[good[keep, 0]].astype(np.float64), pts_j[good[keep, 1]].astype(np.float64))
+        ws.save_matches((i, j), pts_i[good[keep, 0]].astype(np.float64), pts_j[good[keep, 1]].astype(np.float64),
+                        good[keep, 0], good[keep, 1])
         record["tie_points"] = len(keep)
     return record

@@ -9,14 +9,14 @@ import numpy as np
 from workers.algorithms.alignment import apply_homography, frame_corners
 from workers.algorithms.georef import utm_to_lonlat
 from workers.config import MosaicConfig
-from workers.pipeline import stage_names
+from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``report.json`` and, for a georeferenced mosaic, ``footprints.geojson``."""
     progress(0.0, "report")
-    frames = {f["index"]: f for f in ws.load_frames()}
+    frames = ws.load_composed_frames()
     align, geo = read_json(ws.alignment_file()), read_json(ws.georef_file())
     pairs = read_json(ws.pairs_file())["pairs"]
     homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
@@ -29,6 +29,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     rms = align["tie_point_rms_px"]
     report = {
         "kind": "mosaic",
+        "mode": cfg.mode,
         "config": cfg.model_dump(),
         "frames_used": [_frame_entry(frames[k], footprints[k], align) for k in sorted(homs)],
         "frames_rejected": ws.load_rejected_frames() + align["rejected"],
@@ -45,8 +46,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "gps_residual_rms_m": geo.get("gps_residual_rms_m"),
         "mosaic": {"width": geo["width"], "height": geo["height"], "transform": geo["transform"],
                    "footprint": _polygon(outline, geo), "coverage_fraction": coverage["area_fraction"]},
-        "stage_seconds": _stage_seconds(ws),
+        "stage_seconds": _stage_seconds(ws, pipeline_key("mosaic", {"mode": cfg.mode})),
     }
+    if cfg.mode == "ortho":
+        report["triangulation"] = read_json(ws.cameras_file())["report"]
     write_json(ws.report_file(), report)
     if geo["georeferenced"]:
         write_json(ws.footprints_file(), _footprint_collection(frames, footprints))
@@ -82,16 +85,16 @@ def _pair_entries(pairs: list[dict[str, Any]], frames: dict[int, dict[str, Any]]
     entries = []
     for p in pairs:
         pair = (p["i"], p["j"])
-        reason = dropped.get(pair) or ("" if p["accepted"] else "too few homography inliers")
+        reason = dropped.get(pair) or ("" if p["accepted"] else "too few inliers of the pair's model")
         entries.append({"frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]], "matches": p["matches"],
                         "inliers": p["inliers"], "used": p["accepted"] and pair not in dropped,
                         "reason_unused": reason, "tie_point_rms_px": rms.get(pair)})
     return entries
 
 
-def _stage_seconds(ws: JobWorkspace) -> dict[str, float]:
+def _stage_seconds(ws: JobWorkspace, pipeline: str) -> dict[str, float]:
     out = {}
-    for name in stage_names("mosaic"):
+    for name in stage_names(pipeline):
         rep = ws.load_stage_report(name)
         if rep is not None:
             out[name] = rep.get("wall_seconds", 0.0)

@@ -1,0 +1,57 @@
+"""Camera calibrations (chessboards, hand marks, plumb lines) and stereo rigs, and measuring with a rig."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, File, Form, UploadFile
+
+from api import calibration_service as service
+from api.deps import DbDep, QueueDep, SettingsDep
+from api.models import CalibrationOut, JobOut, MarksUpdate, MeasureRequest
+from api.stereo_service import measure_with_rig
+
+router = APIRouter(prefix="/api", tags=["calibration"])
+
+OPTIONS_HELP = "JSON object of options (see CalibrationConfig / StereoCalibrationConfig), e.g. {\"pattern\": [9, 6]}"
+
+
+@router.post("/calibrations", status_code=202, response_model=JobOut)
+async def create_calibration(db: DbDep, settings: SettingsDep, queue: QueueDep,
+                             files: list[UploadFile] = File(default=[], description="photos of the board"),
+                             options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
+    """Calibrate one camera: chessboard photos (corners found automatically), hand marks, or plumb lines."""
+    return await service.create_calibration(db, settings, queue, "calibration", {"": files},
+                                            service.parse_options(options))
+
+
+@router.get("/calibrations/{job_id}", response_model=CalibrationOut)
+def get_calibration(job_id: int, db: DbDep, settings: SettingsDep) -> CalibrationOut:
+    """The job and, once solved, the camera JSON, RMS, per-point reprojection errors and parameter sigmas."""
+    return service.get_calibration(db, settings, job_id, "calibration")
+
+
+@router.put("/calibrations/{job_id}/markers", status_code=202, response_model=JobOut)
+def replace_markers(job_id: int, body: MarksUpdate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
+    """Replace or remove the marks of some photos, then solve again."""
+    return service.replace_markers(db, settings, queue, job_id, body)
+
+
+@router.post("/stereo-rigs", status_code=202, response_model=JobOut)
+async def create_stereo_rig(db: DbDep, settings: SettingsDep, queue: QueueDep,
+                            left: list[UploadFile] = File(..., description="left photos, in pair order"),
+                            right: list[UploadFile] = File(..., description="right photos, same order"),
+                            options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
+    """Calibrate a two-camera rig from paired chessboard photos: rotation, baseline, RMS."""
+    return await service.create_calibration(db, settings, queue, "stereo_calibration",
+                                            {"left": left, "right": right}, service.parse_options(options))
+
+
+@router.get("/stereo-rigs/{job_id}", response_model=CalibrationOut)
+def get_stereo_rig(job_id: int, db: DbDep, settings: SettingsDep) -> CalibrationOut:
+    return service.get_calibration(db, settings, job_id, "stereo_calibration")
+
+
+@router.post("/stereo-rigs/{job_id}/measure")
+def measure(job_id: int, body: MeasureRequest, db: DbDep, settings: SettingsDep) -> dict:
+    """3D points (left camera frame, mm) of pixel pairs by the midpoint of the two rays, their distances
+    and uncertainties."""
+    return measure_with_rig(db, settings, job_id, body)

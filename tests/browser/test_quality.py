@@ -1,0 +1,274 @@
+"""The viewer's quality and calibration pages in headless Chromium against the real service.
+
+Jobs are created through the HTTP API (the upload path is what test_viewer.py covers); the pages are then
+opened and read as a user would. Every test fails on console errors, page errors, HTTP error answers it
+did not provoke on purpose, and on requests that leave the service.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from tests.browser.support import ARTIFACTS, PageWatch
+from tests.conftest import shared_data
+from tests.scenes import make_flight
+
+pytestmark = pytest.mark.browser
+
+NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
+
+# A report.json triangulation as the ortho pipeline writes it, with some fields missing on purpose.
+TRIANGULATION = {
+    "registered": 28, "total": 29,
+    "not_registered": [{"name": "frame_028.jpg", "reason": "too few tie points with the registered cameras"}],
+    "rms_px": 0.61, "rms_px_original": 1.22, "observations": 5120, "points": 1400, "outliers_dropped": 37,
+    "datum": "gps+gcp",
+    "self_calibration": {"focal": {"initial": 3000.0, "adjusted": 3012.4}, "k1": {"initial": 0.0, "adjusted": -0.0123}},
+    "images": [{"name": f"frame_{i:03d}.jpg", "rms_px": 0.5 + i / 100, "observations": 180 + i,
+                "gps_residual_m": 0.8 if i else None} for i in range(28)],
+    "gps_residual_rms_m": 1.05,
+    "gcps": [
+        {"id": "gcp1", "role": "control", "observations": 4, "residual_px": 0.7, "error_m": [0.01, -0.02, 0.03],
+         "error_3d_m": 0.037},
+        {"id": "chk1", "role": "checkpoint", "observations": 3, "residual_px": None, "error_m": None},  # no error_3d_m
+    ],
+}
+
+
+def _numbers(text: str) -> list[float]:
+    return [float(m) for m in NUMBER.findall(text)]
+
+
+def _post_job(live_service: Any, path: str, files: list[tuple[str, tuple[str, bytes, str]]], options: dict) -> dict:
+    response = httpx.post(f"{live_service.url}{path}", files=files, data={"options": json.dumps(options)}, timeout=60)
+    assert response.status_code == 202, response.text
+    job = live_service.wait_for_job(response.json()["id"], timeout=120)
+    assert job["status"] == "succeeded", f"{path} job ended {job['status']}: {job['error']}"
+    return job
+
+
+def _jpegs(paths: list[Path], field: str) -> list[tuple[str, tuple[str, bytes, str]]]:
+    return [(field, (p.name, p.read_bytes(), "image/jpeg")) for p in paths]
+
+
+@pytest.fixture(scope="module")
+def planar_job(live_service: Any, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A finished planar mosaic of 5 synthetic frames, made through the HTTP API."""
+    folder = tmp_path_factory.mktemp("quality") / "frames"
+    flight = make_flight(folder, n_frames=5, frame_size=(480, 360), gps=True, seed=7)
+    url = live_service.url
+    created = httpx.post(f"{url}/api/flights", json={"name": "Quality test flight"}, timeout=10).json()
+    uploaded = httpx.post(f"{url}/api/flights/{created['id']}/images", files=_jpegs(flight.paths, "files"), timeout=60)
+    assert uploaded.status_code < 300, uploaded.text
+    body = {"flight_id": created["id"], "kind": "mosaic", "options": {}}
+    response = httpx.post(f"{url}/api/jobs", json=body, timeout=10)
+    assert response.status_code == 202, response.text
+    job = live_service.wait_for_job(response.json()["id"], timeout=180)
+    assert job["status"] == "succeeded", f"mosaic job ended {job['status']}: {job['error']}"
+    return job
+
+
+def _screenshot(page: Any, name: str) -> None:
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
+
+
+def _forget(watch: PageWatch, fragment: str) -> None:
+    """Drop the error answers (and the browser's console line about them) a test provoked on purpose."""
+    watch.error_responses[:] = [r for r in watch.error_responses if fragment not in r]
+    watch.console_errors[:] = [c for c in watch.console_errors if "status of 4" not in c]
+
+
+@pytest.mark.realdata
+def test_calibration_job_page(watched_page, live_service) -> None:
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+    lefts = sorted(shared_data("calib_chessboard").glob("left*.jpg"))
+    job = _post_job(live_service, "/api/calibrations", _jpegs(lefts, "files"), {"pattern": [9, 6], "square_mm": 25})
+
+    page.goto(f"{live_service.url}/#/jobs/{job['id']}")
+    expect(page.get_by_test_id("job-status")).to_have_text("succeeded")
+    expect(page.locator(".breadcrumb")).to_contain_text("Calibrations")
+    expect(page.locator("main")).not_to_contain_text("null")
+    rms = page.get_by_test_id("calibration-rms")
+    expect(rms).to_contain_text("px")
+    (rms_px,) = _numbers(rms.inner_text())
+    assert 0 < rms_px < 0.5, f"RMS shown {rms_px}"
+    (fx,) = _numbers(page.get_by_test_id("param-fx").inner_text())
+    assert abs(fx - 536) < 0.02 * 536, f"fx shown {fx}"  # MANIFEST: fx ~ 536
+    expect(page.locator('[data-param="fx"] td').nth(2)).to_contain_text(re.compile(r"\d"))  # its sigma
+    expect(page.get_by_test_id("view-row")).to_have_count(len(lefts))
+    expect(page.get_by_test_id("worst-points").locator("tbody tr")).to_have_count(10)
+    expect(page.get_by_test_id("view-points").locator("tbody tr")).to_have_count(54)  # 9 x 6 corners
+    page.get_by_test_id("view-pick").select_option(index=2)
+    expect(page.get_by_test_id("view-points").locator("caption")).to_contain_text(lefts[2].name)
+    expect(page.get_by_test_id("download-calibration")).to_have_attribute("href", re.compile(r"calibration\.json$"))
+    expect(page.get_by_test_id("job-detail")).to_have_text("Finished: the camera is calibrated.")
+    expect(page.get_by_test_id("map")).to_have_count(0)
+    page.wait_for_load_state("networkidle")
+    _screenshot(page, "calibration")
+    assert not any("/api/flights/" in u or "/tiles/" in u for u in watch.request_urls), "a calibration has no flight"
+    watch.assert_clean(live_service.url)
+
+
+@pytest.mark.realdata
+def test_failed_calibration_shows_its_error(watched_page, live_service, tmp_path) -> None:
+    import cv2
+    import numpy as np
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+    blank = tmp_path / "blank.jpg"  # no board: 2 usable views where a calibration needs 3
+    cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
+    photos = [*sorted(shared_data("calib_chessboard").glob("left*.jpg"))[:2], blank]
+    options = json.dumps({"pattern": [9, 6], "square_mm": 25})
+    response = httpx.post(f"{live_service.url}/api/calibrations", files=_jpegs(photos, "files"),
+                          data={"options": options}, timeout=60)
+    assert response.status_code == 202, response.text
+    job = live_service.wait_for_job(response.json()["id"], timeout=120)
+    assert job["status"] == "failed"
+
+    page.goto(f"{live_service.url}/#/jobs/{job['id']}")
+    expect(page.get_by_test_id("job-status")).to_have_text("failed")
+    expect(page.get_by_test_id("job-error")).to_contain_text("a calibration needs 3")
+    expect(page.get_by_test_id("job-error")).to_contain_text("blank.jpg")
+    expect(page.get_by_test_id("retry-job")).to_be_visible()
+    page.wait_for_load_state("networkidle")
+    assert not any("/api/calibrations/" in u for u in watch.request_urls), "no result to read for a failed job"
+    watch.assert_clean(live_service.url)
+
+
+@pytest.mark.realdata
+def test_stereo_rig_page_and_measure(watched_page, live_service) -> None:
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+    folder = shared_data("calib_chessboard")
+    files = _jpegs(sorted(folder.glob("left*.jpg"))[:6], "left") + _jpegs(sorted(folder.glob("right*.jpg"))[:6],
+                                                                          "right")
+    job = _post_job(live_service, "/api/stereo-rigs", files, {"pattern": [9, 6], "square_mm": 25})
+
+    page.goto(f"{live_service.url}/#/jobs/{job['id']}")
+    baseline = page.get_by_test_id("baseline")
+    expect(baseline).to_contain_text("mm")
+    assert 0 < _numbers(baseline.inner_text())[0] < 500  # OpenCV's sample rig: a few board squares apart
+    expect(page.get_by_test_id("pair-row")).to_have_count(6)
+    expect(page.get_by_test_id("rig-cameras")).to_contain_text("fx")
+
+    page.get_by_test_id("measure-input").fill("1 2 3")
+    page.get_by_test_id("measure-submit").click()
+    expect(page.get_by_test_id("measure-error")).to_contain_text("Line 1")  # checked before sending
+    page.get_by_test_id("measure-input").fill("300 200 250 200\n400 220 350 221\n")
+    page.get_by_test_id("measure-submit").click()
+    expect(page.get_by_test_id("measured-point")).to_have_count(2)
+    expect(page.get_by_test_id("measured-distance")).to_have_count(1)
+    expect(page.get_by_test_id("measured-distance")).to_contain_text("±")
+    expect(page.get_by_test_id("measure-error")).to_have_text("")
+
+    page.get_by_test_id("measure-input").fill("9000 200 250 200")
+    page.get_by_test_id("measure-submit").click()
+    expect(page.get_by_test_id("measure-error")).to_contain_text("outside")  # the API's 422 detail
+    expect(page.get_by_test_id("measured-point")).to_have_count(0)
+    _screenshot(page, "stereo_rig")
+    _forget(watch, "/measure")
+    watch.assert_clean(live_service.url)
+
+
+def test_quality_card_of_planar_mosaic(watched_page, live_service, planar_job) -> None:
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+    page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
+    quality = page.get_by_test_id("quality")
+    expect(quality).to_be_visible()
+    expect(page.get_by_test_id("quality-mode")).to_have_text("planar")
+    expect(page.get_by_test_id("frames-used")).to_have_text("5 of 5")
+    expect(page.get_by_test_id("frames-rejected")).to_contain_text("No frame was rejected")
+    rms = _numbers(page.get_by_test_id("tie-point-rms").inner_text())
+    assert len(rms) == 2 and 0 <= rms[0] < 2, f"tie-point RMS shown as {rms}"
+    expect(page.get_by_test_id("gsd")).to_contain_text(re.compile(r"\d+(\.\d+)? c?m"))
+    expect(page.get_by_test_id("triangulation")).to_have_count(0)  # planar: no photo-triangulation
+    page.wait_for_load_state("networkidle")
+    watch.assert_clean(live_service.url)
+
+
+def test_quality_card_shows_triangulation(watched_page, live_service, planar_job) -> None:
+    """The ortho part of the card, from a planar report with an ortho ``triangulation`` spliced in (and
+    some fields removed): the rendering is checked here whatever the state of the ortho pipeline."""
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+
+    def splice(route: Any) -> None:
+        report = route.fetch().json()
+        report.update(mode="ortho", triangulation=TRIANGULATION)
+        del report["gps_residual_rms_m"]
+        route.fulfill(json=report)
+
+    page.route(re.compile(r"/outputs/report\.json$"), splice)
+    page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
+    expect(page.get_by_test_id("registered")).to_have_text("28 / 29")
+    expect(page.get_by_test_id("not-registered")).to_contain_text("frame_028.jpg: too few tie points")
+    expect(page.get_by_test_id("rms-reprojection")).to_have_text("0.61 px (1.22 px at full resolution)")
+    expect(page.get_by_test_id("gps-residual-rms")).to_have_text("–")  # missing field
+    expect(page.get_by_test_id("image-residual-row")).to_have_count(28)
+    expect(page.get_by_test_id("image-residual-row").first.locator("td").nth(3)).to_have_text("–")
+    expect(page.get_by_test_id("self-calibration")).to_contain_text("3012.40")
+    rows = page.get_by_test_id("gcp-row")
+    expect(rows).to_have_count(2)
+    expect(rows.first).to_contain_text("0.010, -0.020, 0.030 m")
+    expect(page.locator('[data-testid="gcp-row"][data-role="checkpoint"] td').nth(5)).to_have_text("–")
+    page.wait_for_load_state("networkidle")
+    _screenshot(page, "quality_ortho")
+    watch.assert_clean(live_service.url)
+
+
+def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_path) -> None:
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+    flight_id = planar_job["flight_id"]
+    gcps = tmp_path / "gcp_list.txt"
+    gcps.write_text("WGS84 UTM 15N\n"
+                    "271000.0 3294000.0 10.0 240 180 frame_000.jpg gcp1\n"
+                    "271000.0 3294000.0 10.0 120 170 frame_001.jpg gcp1\n"
+                    "271050.0 3294010.0 12.0 300 90 frame_001.jpg gcp2\n"
+                    "271050.0 3294010.0 12.0 30 60 elsewhere.jpg gcp2\n")
+    bad = tmp_path / "bad.txt"
+    bad.write_text("not a coordinate system\n")
+
+    page.goto(f"{live_service.url}/#/flights/{flight_id}")
+    expect(page.get_by_test_id("mode-planar")).to_be_checked()
+    expect(page.locator(".gcp-upload")).to_contain_text("ortho jobs")
+    page.get_by_test_id("gcp-input").set_input_files(str(gcps))
+    expect(page.get_by_test_id("gcp-status")).to_have_text(
+        "Stored gcp_list.txt: 2 points (2 with a position), 4 observations. Not in this flight: elsewhere.jpg.")
+    page.get_by_test_id("gcp-input").set_input_files(str(bad))
+    expect(page.get_by_test_id("gcp-error")).to_contain_text("Not stored")
+    expect(page.get_by_test_id("gcp-error")).to_contain_text("bad.txt: line 1: unknown coordinate system")  # detail
+    expect(page.get_by_test_id("gcp-status")).to_have_text("")
+    _screenshot(page, "flight_gcps")
+    _forget(watch, "/gcps")
+
+    # The job request itself is answered here (with the existing planar job) so that no ortho job runs.
+    sent: list[dict] = []
+
+    def answer(route: Any) -> None:
+        sent.append(route.request.post_data_json)
+        route.fulfill(status=202, json=planar_job)
+
+    page.route(re.compile(r"/api/jobs$"), answer)
+    page.get_by_label("Ortho").check()
+    page.get_by_test_id("start-job").click()
+    page.wait_for_url(re.compile(rf"#/jobs/{planar_job['id']}$"))
+    assert sent == [{"flight_id": flight_id, "kind": "mosaic", "options": {"mode": "ortho"}}]
+    expect(page.get_by_test_id("quality")).to_be_visible()
+    page.wait_for_load_state("networkidle")
+    watch.assert_clean(live_service.url)

@@ -1,0 +1,128 @@
+"""A drone flight over ground with relief, photographed by a real (pinhole + Brown) camera.
+
+Unlike ``scenes.make_flight``, whose frames are homographies of a flat texture, every pixel here is a
+ray of a known camera with a known pose, traced to a known terrain: the ground truth for
+photo-triangulation (poses, focal, distortion) and for orthorectification (where each ground point
+must land in the map).
+
+World frame: x east, y north, z up, metres, origin at the texture centre on the datum ``z = 0``;
+``origin_utm`` places it in the UTM zone ``epsg``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+from pyproj import Transformer
+
+from tests.scenes import FIRST_SHOT, SHOT_INTERVAL, _exif_bytes, make_texture
+from workers.algorithms.camera import Camera, rotation_from_vector
+
+
+@dataclass(frozen=True)
+class TerrainFlight:
+    """Frames on disk and their truth.
+
+    paths : JPEGs in flight order. camera : the true camera (the EXIF gives only a rounded 35 mm focal).
+    rotations, centres : per frame (3, 3) and (3,), ``X_cam = R (X - C)`` in the world frame.
+    texture : (H, W, 3) uint8 BGR draped over the terrain; ``texture_gsd_m`` metres per texture px.
+    relief_m : amplitude of the terrain. epsg, origin_utm : where the world origin is.
+    """
+
+    paths: list[Path]
+    camera: Camera
+    rotations: list[np.ndarray]
+    centres: list[np.ndarray]
+    texture: np.ndarray
+    texture_gsd_m: float
+    relief_m: float
+    epsg: int
+    origin_utm: tuple[float, float]
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Terrain height (m) at world x, y: two smooth hills and a gentle slope."""
+        return self.relief_m * (np.exp(-((x - 6) ** 2 + (y - 4) ** 2) / 150.0)
+                                - 0.6 * np.exp(-((x + 10) ** 2 + (y + 6) ** 2) / 90.0) + 0.01 * x)
+
+    def texture_px(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Texture pixel (column, row) of world x, y; rows grow southwards."""
+        h, w = self.texture.shape[:2]
+        return x / self.texture_gsd_m + (w - 1) / 2, -y / self.texture_gsd_m + (h - 1) / 2
+
+    def ground_point(self, rays_world: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        """Where rays (N, 3) from ``centre`` meet the terrain, (N, 3), by fixed-point iteration on height."""
+        z = np.zeros(len(rays_world))
+        for _ in range(12):  # converges geometrically: slopes are gentle next to the flying height
+            t = (z - centre[2]) / rays_world[:, 2]
+            xy = centre[:2] + t[:, None] * rays_world[:, :2]
+            z = self.height(xy[:, 0], xy[:, 1])
+        return np.column_stack([xy, z])
+
+
+def make_terrain_flight(out_dir: Path, rows: int = 3, per_row: int = 5, frame_size: tuple[int, int] = (800, 600),
+                        altitude_m: float = 50.0, overlap: float = 0.7, relief_m: float = 6.0,
+                        tilt_deg: float = 4.0, k1: float = -0.06, k2: float = 0.02, seed: int = 0,
+                        origin_latlon: tuple[float, float] = (52.52, 13.40)) -> TerrainFlight:
+    """Render a serpentine grid flight (``rows`` lines of ``per_row`` frames) to JPEGs with EXIF GPS.
+
+    The camera looks down, turned by up to 8 degrees of yaw and tilted by up to ``tilt_deg``; GPS in
+    the EXIF is the exact centre (altitude above the datum), the 35 mm focal length is rounded to a
+    whole millimetre as EXIF stores it.
+    """
+    rng = np.random.default_rng(seed)
+    w, h = frame_size
+    focal = 0.9 * w
+    # The principal point is at the centre, as the adjustment assumes: with GPS alone, a nadir block cannot
+    # tell a principal-point offset from a common tilt of all cameras (it shifts the map by offset x GSD).
+    camera = Camera(w, h, focal, focal, (w - 1) / 2, (h - 1) / 2, k1=k1, k2=k2)
+    foot_w, foot_h = altitude_m * w / focal, altitude_m * h / focal
+    step_x, step_y = foot_w * (1 - overlap), foot_h * 0.55
+    centres, rotations = [], []
+    for r in range(rows):
+        for c in range(per_row) if r % 2 == 0 else reversed(range(per_row)):
+            x, y = (c - (per_row - 1) / 2) * step_x, ((rows - 1) / 2 - r) * step_y
+            centres.append(np.array([x, y, altitude_m + rng.uniform(-2, 2)]))
+            rotations.append(_nadir_rotation(rng.uniform(-8, 8), rng.uniform(-tilt_deg, tilt_deg, 2)))
+    extent = np.abs(np.array(centres)[:, :2]).max(axis=0) + np.array([foot_w, foot_h]) * 1.2
+    gsd = altitude_m / focal  # the texture has the photos' own resolution at the datum
+    tex = make_texture(int(2 * extent[1] / gsd) + 1, int(2 * extent[0] / gsd) + 1, seed=int(rng.integers(2**31)))
+    lat, lon = origin_latlon
+    epsg = (32600 if lat >= 0 else 32700) + int((lon + 180) // 6) % 60 + 1
+    east, north = Transformer.from_crs(4326, epsg, always_xy=True).transform(lon, lat)
+    flight = TerrainFlight([Path(out_dir) / f"terrain_{i:03d}.jpg" for i in range(len(centres))], camera,
+                           rotations, centres, tex, gsd, relief_m, epsg, (float(east), float(north)))
+    _render_frames(flight)
+    return flight
+
+
+def _nadir_rotation(yaw_deg: float, tilt_deg: np.ndarray) -> np.ndarray:
+    """World -> camera rotation of a camera looking down, image top towards north turned by ``yaw_deg``."""
+    down = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # x east, y south, z down
+    yaw = rotation_from_vector(np.array([0, 0, math.radians(yaw_deg)]))
+    tilt = rotation_from_vector(np.array([*np.radians(tilt_deg), 0.0]))
+    return tilt @ down @ yaw.T
+
+
+def _render_frames(flight: TerrainFlight) -> None:
+    cam = flight.camera
+    u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64))
+    rays = cam.unproject(np.column_stack([u.ravel(), v.ravel()]))
+    to_wgs84 = Transformer.from_crs(flight.epsg, 4326, always_xy=True)
+    for i, (R, C) in enumerate(zip(flight.rotations, flight.centres, strict=True)):
+        ground = flight.ground_point(rays @ R, C)  # R.T @ ray for each row
+        col, row = flight.texture_px(ground[:, 0], ground[:, 1])
+        shape = (cam.height, cam.width)
+        image = cv2.remap(flight.texture, col.reshape(shape).astype(np.float32), row.reshape(shape).astype(np.float32),
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        lon, lat = to_wgs84.transform(flight.origin_utm[0] + C[0], flight.origin_utm[1] + C[1])
+        pitch_mm = 36.0 / cam.width  # a full-frame-equivalent sensor: EXIF's 35 mm focal is focal * 36 / width
+        exif = _exif_bytes(gps=(float(lat), float(lon), float(C[2])), focal_length_mm=round(cam.fx * pitch_mm),
+                           sensor_width_mm=36.0, pixels_per_cm=10.0 / pitch_mm,
+                           taken=FIRST_SHOT + i * SHOT_INTERVAL)
+        flight.paths[i].parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(flight.paths[i], "JPEG", quality=93, exif=exif)

@@ -1,0 +1,82 @@
+"""Ortho mode against a rendered flight with known cameras over relief: triangulation and map placement."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+
+from tests.terrain_scenes import TerrainFlight, make_terrain_flight
+from workers.algorithms.camera import Camera
+from workers.pipeline import process_directory
+from workers.workspace import JobWorkspace, read_json
+
+
+@pytest.fixture(scope="module")
+def ortho(tmp_path_factory: pytest.TempPathFactory) -> tuple[TerrainFlight, dict, JobWorkspace]:
+    root = tmp_path_factory.mktemp("terrain")
+    flight = make_terrain_flight(root / "frames", rows=3, per_row=4, frame_size=(640, 480), seed=3)
+    # the synthetic GPS is exact: say so (the default, 5 m, is a consumer receiver's accuracy)
+    report = process_directory(root / "frames", root / "job", {"mode": "ortho", "gps_sigma_m": 0.05})
+    return flight, report, JobWorkspace(root / "job")
+
+
+def test_every_camera_is_registered_where_it_was(ortho) -> None:
+    flight, report, ws = ortho
+    tri = report["triangulation"]
+    assert tri["registered"] == tri["total"] == 12 and tri["not_registered"] == []
+    assert tri["rms_px"] < 0.5
+    cams = read_json(ws.cameras_file())
+    world = cams["world"]
+    shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1], 0.0])
+    errors = [np.linalg.norm(np.array(p["C"]) + shift - flight.centres[int(k)]) for k, p in cams["poses"].items()]
+    span = np.ptp(np.array(flight.centres), axis=0).max()
+    assert max(errors) < 0.001 * span, f"worst camera centre {max(errors):.3f} m over a {span:.0f} m flight"
+    # self-calibration from a focal length EXIF rounded to 1 mm (1.2 % off) and an unknown lens distortion
+    camera = cams["camera"]
+    assert abs(camera["fx"] - flight.camera.fx) < 0.005 * flight.camera.fx
+    assert abs(camera["k1"] - flight.camera.k1) < 0.005
+    assert tri["gps_residual_rms_m"] < 0.05
+
+
+def test_true_ground_reprojects_where_the_photos_show_it(ortho) -> None:
+    """Ground points traced through the true cameras land within a pixel in the adjusted ones."""
+    flight, _, ws = ortho
+    cams = read_json(ws.cameras_file())
+    camera = Camera.from_json(cams["camera"])
+    world = cams["world"]
+    shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1], 0.0])
+    u, v = np.meshgrid(np.linspace(0, 639, 9), np.linspace(0, 479, 7))
+    pixels = np.column_stack([u.ravel(), v.ravel()])
+    errors = []
+    for k, pose in cams["poses"].items():
+        R, C = flight.rotations[int(k)], flight.centres[int(k)]
+        ground = flight.ground_point(flight.camera.unproject(pixels) @ R, C)
+        seen = camera.project((ground - np.array(pose["C"]) - shift) @ np.array(pose["R"]).T)
+        errors.append(np.linalg.norm(seen - pixels, axis=1))
+    rms = float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
+    assert rms < 0.5, f"true ground reprojects {rms:.2f} px RMS from where it was photographed"
+
+
+def test_orthomosaic_shows_the_ground_at_its_map_position(ortho) -> None:
+    """Where the terrain is at the ortho plane's height, every mosaic pixel shows the texture of that spot."""
+    flight, report, ws = ortho
+    z0 = read_json(ws.alignment_file())["ground_z"]
+    with rasterio.open(ws.mosaic_file()) as src:
+        assert src.crs.to_epsg() == flight.epsg
+        rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
+        mask = src.dataset_mask() > 0
+        rows, cols = np.mgrid[0:src.height, 0:src.width]
+        east, north = rasterio.transform.xy(src.transform, rows.ravel(), cols.ravel())
+    x = np.asarray(east) - flight.origin_utm[0]
+    y = np.asarray(north) - flight.origin_utm[1]
+    col, row = flight.texture_px(x, y)
+    expected = cv2.remap(flight.texture, col.reshape(rows.shape).astype(np.float32),
+                         row.reshape(rows.shape).astype(np.float32), cv2.INTER_LINEAR)[..., ::-1].astype(np.float32)
+    level = (np.abs(flight.height(x, y) - z0) < 0.15).reshape(rows.shape)
+    inner = (cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & level
+    assert inner.sum() > 2000
+    diff = np.abs(rgb - expected)[inner].mean()
+    assert diff < 8.0, f"mean colour difference {diff:.1f} levels where the ground is at the ortho plane"
+    assert report["mode"] == "ortho" and report["georeferenced"]

@@ -1,0 +1,153 @@
+/* A finished mosaic's "Quality" card, read from its report.json: frames used and rejected, tie-point
+ * and reprojection RMS, GSD, GPS residuals and, for ortho jobs, the photo-triangulation's cameras and
+ * ground control points. Every field may be missing (older reports, planar jobs): it then shows "–".
+ */
+
+import { api, dataTable, factList, formatMetres, formatNumber, h, humanize } from "./lib.js";
+
+const MODES = {
+  planar: "Planar (flat ground)",
+  ortho: "Ortho (photo-triangulation + orthorectification)",
+};
+const DATUMS = {
+  gps: "GPS positions of the photos",
+  gcp: "ground control points",
+  "gps+gcp": "GPS positions and ground control points",
+  arbitrary: "arbitrary (no GPS, no GCPs): not to scale",
+};
+
+/** Fill `card` from the job's report.json, if it has one; `outputs` is the job's outputs list. */
+export async function showQuality(view, outputs, card) {
+  const entry = (outputs || []).find((o) => o.name === "report.json");
+  if (!entry) return;
+  card.hidden = false;
+  card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the report…"));
+  const report = await api("GET", entry.url);
+  if (!view.alive) return;
+  card.replaceChildren(heading(report && report.mode), ...qualityBody(report || {}).filter(Boolean));
+}
+
+function heading(mode) {
+  return h("div", { class: "row spread" }, h("h2", { id: "quality-heading" }, "Quality"),
+    mode ? h("span", { class: "badge", "data-testid": "quality-mode" }, mode) : null);
+}
+
+function qualityBody(report) {
+  const used = list(report.frames_used);
+  const rejected = list(report.frames_rejected);
+  const known = Array.isArray(report.frames_used) || Array.isArray(report.frames_rejected);
+  const nodes = [
+    factList([
+      ["Mode", MODES[report.mode] || report.mode || "–", { "data-testid": "quality-mode-text" }],
+      ["Frames used", known ? `${used.length} of ${used.length + rejected.length}` : "–", { "data-testid": "frames-used" }],
+      ["Tie-point RMS", rmsText(report.tie_point_rms_px, report.tie_point_rms_px_original), { "data-testid": "tie-point-rms" }],
+      ["GSD of the photos", formatMetres(report.gsd_original_m), { "data-testid": "gsd-original" }],
+      ["GSD of the mosaic", formatMetres(report.gsd_m), { "data-testid": "gsd" }],
+      ["GPS residual RMS", formatMetres(report.gps_residual_rms_m), { "data-testid": "gps-residual-rms" }],
+    ], { class: "facts wide", "data-testid": "quality-facts" }),
+    reasons("Rejected frames", rejected, "frames-rejected", "No frame was rejected."),
+  ];
+  if (report.triangulation && typeof report.triangulation === "object") nodes.push(triangulationSection(report.triangulation));
+  return nodes;
+}
+
+/** "0.42 px (1.31 px at full resolution)": the working-scale RMS and the one in the photos' pixels. */
+function rmsText(working, original) {
+  const a = formatNumber(working, 2, "px");
+  if (typeof original !== "number" || !Number.isFinite(original)) return a;
+  return `${a} (${formatNumber(original, 2, "px")} at full resolution)`;
+}
+
+function list(value) {
+  return Array.isArray(value) ? value.filter((item) => item && typeof item === "object") : [];
+}
+
+/** A short list of {name, reason}; nothing when `empty` is null and the list is empty. */
+function reasons(title, items, testid, empty) {
+  if (!items.length && empty === null) return null;
+  return h(
+    "div",
+    { class: "quality-block", "data-testid": testid },
+    h("h3", {}, `${title} (${items.length})`),
+    items.length
+      ? h("ul", { class: "reasons" }, items.map((item) =>
+        h("li", {}, h("span", { class: "filename" }, item.name || `frame ${item.index ?? "?"}`), ": ", item.reason || "no reason given")))
+      : h("p", { class: "muted small" }, empty),
+  );
+}
+
+function triangulationSection(t) {
+  const registered = Number.isFinite(t.registered) && Number.isFinite(t.total) ? `${t.registered} / ${t.total}` : "–";
+  return h(
+    "section",
+    { class: "quality-block", "aria-labelledby": "triangulation-heading", "data-testid": "triangulation" },
+    h("h3", { id: "triangulation-heading" }, "Photo-triangulation"),
+    factList([
+      ["Cameras registered", registered, { "data-testid": "registered" }],
+      ["RMS reprojection", rmsText(t.rms_px, t.rms_px_original), { "data-testid": "rms-reprojection" }],
+      ["Datum", DATUMS[t.datum] || t.datum || "–", { "data-testid": "datum" }],
+      ["Observations", count(t.observations)],
+      ["3D points", count(t.points)],
+      ["Outliers dropped", count(t.outliers_dropped)],
+      ["GPS residual RMS", formatMetres(t.gps_residual_rms_m)],
+    ], { class: "facts wide" }),
+    reasons("Not registered", list(t.not_registered), "not-registered", null),
+    selfCalibration(t.self_calibration),
+    h("h4", {}, "Per image"),
+    dataTable({
+      caption: "Reprojection residuals per image",
+      columns: [{ label: "Image" }, { label: "RMS px", num: true }, { label: "Observations", num: true }, { label: "GPS residual", num: true }],
+      rows: list(t.images).map((img) => ({
+        attrs: { "data-testid": "image-residual-row" },
+        cells: [h("span", { class: "filename", title: img.name || "" }, img.name || "–"), formatNumber(img.rms_px, 2),
+          count(img.observations), formatMetres(img.gps_residual_m)],
+      })),
+      attrs: { "data-testid": "image-residuals" },
+      empty: "No per-image residuals in the report.",
+    }),
+    h("h4", {}, "Ground control points"),
+    dataTable({
+      caption: "Ground control point residuals",
+      columns: [{ label: "GCP" }, { label: "Role" }, { label: "Obs.", num: true }, { label: "Residual px", num: true },
+        { label: "Error dx, dy, dz", num: true }, { label: "Error 3D m", num: true }],
+      rows: list(t.gcps).map((g) => ({
+        attrs: { "data-testid": "gcp-row", "data-role": g.role || "" },
+        cells: [g.id ?? "–", g.role ? humanize(g.role) : "–", count(g.observations), formatNumber(g.residual_px, 2),
+          errorVector(g.error_m), formatNumber(g.error_3d_m, 3)],
+      })),
+      attrs: { "data-testid": "gcp-residuals" },
+      empty: "No ground control points were used.",
+    }),
+  );
+}
+
+function count(n) {
+  return Number.isFinite(n) ? String(n) : "–";
+}
+
+function errorVector(v) {
+  if (!Array.isArray(v) || v.length !== 3 || !v.every(Number.isFinite)) return "–";
+  return `${v.map((x) => x.toFixed(3)).join(", ")} m`;
+}
+
+function selfCalibration(params) {
+  if (!params || typeof params !== "object" || !Object.keys(params).length) return null;
+  return h(
+    "div",
+    {},
+    h("h4", {}, "Self-calibration"),
+    dataTable({
+      caption: "Camera parameters refined by the adjustment",
+      columns: [{ label: "Parameter" }, { label: "Initial", num: true }, { label: "Adjusted", num: true }],
+      rows: Object.entries(params).map(([name, p]) => [name, digitsFor(p && p.initial), digitsFor(p && p.adjusted)]),
+      attrs: { "data-testid": "self-calibration" },
+      scroll: false,
+    }),
+  );
+}
+
+/** Focal lengths read well with 2 decimals, distortion terms need more. */
+function digitsFor(value) {
+  if (typeof value !== "number" || !Number.isFinite(value)) return "–";
+  return Math.abs(value) >= 10 ? value.toFixed(2) : value.toPrecision(4);
+}

@@ -1,0 +1,533 @@
+"""Crack geometry on a boolean crack mask at a known scale: skeleton, per-crack polylines, length, width,
+orientation, totals, and matching of cracks between load stages.
+
+Coordinates: pixel (col, row) has its centre at x = col * mm_per_px, y = row * mm_per_px (mm, y down, as
+in the raster). Orientations are in degrees counter-clockwise from the +x axis as seen on the image
+(y up), folded into [0, 180).
+
+The chain: Zhang-Suen thinning (Zhang & Suen, CACM 1984) made strictly 8-thin by deleting the remaining
+simple non-end points (Rosenfeld's simple-point test), branches between junctions traced into ordered
+paths, spurs shorter than the local width pruned (as in skan, Nunez-Iglesias et al. 2018), lengths along
+Gaussian-smoothed paths, widths as mask area per unit length along the path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Literal
+
+import cv2
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+# Neighbour k of a pixel, in the ring order N, NE, E, SE, S, SW, W, NW (Zhang & Suen's P2..P9): (drow, dcol).
+RING = ((-1, 0), (-1, 1), (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1))
+DEFAULT_LENGTH_BINS_MM = (0.0, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, np.inf)
+_EIGHT = np.ones((3, 3), dtype=bool)
+
+
+@dataclass(frozen=True)
+class Crack:
+    """One crack: an 8-connected component of the mask, measured along its skeleton."""
+
+    paths_mm: tuple[np.ndarray, ...]  # per branch, (N, 2) float64 (x, y) mm, ordered, smoothed; junctions shared
+    length_mm: float  # sum of the branch lengths
+    mean_width_mm: float
+    max_width_mm: float
+    orientation_deg: float  # principal axis of the skeleton, [0, 180), counter-clockwise from +x with y up
+    endpoints_mm: np.ndarray  # (K, 2) float64 (x, y) mm, the free ends of the skeleton
+    bbox_mm: tuple[float, float, float, float]  # x_min, y_min, x_max, y_max of the crack's pixel centres
+
+
+@dataclass(frozen=True)
+class CrackSummary:
+    """Totals over the cracks of one image."""
+
+    count: int
+    total_length_mm: float
+    mean_width_mm: float  # length-weighted
+    max_width_mm: float
+    histogram_edges_mm: np.ndarray  # (B + 1,) float64
+    histogram_counts: np.ndarray  # (B,) int64, cracks per length bin
+
+
+@dataclass(frozen=True)
+class CrackMatch:
+    """How one crack of the current stage relates to the previous stage."""
+
+    current: int  # index into the current cracks
+    status: Literal["new", "grown", "unchanged"]
+    growth_mm: float  # length gained since the previous stage (the whole length for a new crack)
+    previous: tuple[int, ...]  # indices of the previous cracks it continues
+
+
+def _neighbour_codes(image: np.ndarray) -> np.ndarray:
+    """(H, W) uint8: bit k set where ring neighbour k (see ``RING``) of a pixel is set in the bool ``image``."""
+    padded = np.pad(image, 1)
+    h, w = image.shape
+    code = np.zeros((h, w), np.uint8)
+    for bit, (dr, dc) in enumerate(RING):
+        code |= padded[1 + dr:1 + dr + h, 1 + dc:1 + dc + w].astype(np.uint8) << bit
+    return code
+
+
+def _ring_bits(code: int) -> list[int]:
+    return [(code >> k) & 1 for k in range(8)]
+
+
+@lru_cache(maxsize=1)
+def _zhang_suen_tables() -> tuple[np.ndarray, np.ndarray]:
+    """Deletion tables of the two Zhang-Suen sub-iterations, indexed by neighbour code: (256,) bool each.
+
+    With Lu & Wang's correction: Zhang-Suen's own test (2 <= B) erases lines two pixels thick on diagonals.
+    """
+    tables = np.zeros((2, 256), dtype=bool)
+    for code in range(256):
+        p = _ring_bits(code)  # p[0..7] = P2..P9
+        transitions = sum(p[k] == 0 and p[(k + 1) % 8] == 1 for k in range(8))
+        if 3 <= sum(p) <= 6 and transitions == 1:  # 3, not 2: Lu & Wang (CACM 1986) keep 2-px diagonals
+            tables[0, code] = p[0] * p[2] * p[4] == 0 and p[2] * p[4] * p[6] == 0
+            tables[1, code] = p[0] * p[2] * p[6] == 0 and p[0] * p[4] * p[6] == 0
+    return tables[0], tables[1]
+
+
+@lru_cache(maxsize=1)
+def _removable_table() -> np.ndarray:
+    """(256,) bool: deleting the centre changes neither topology nor the ends of the skeleton.
+
+    The centre must be a simple point (Rosenfeld 1970, 8-connected foreground: the foreground neighbours
+    form one 8-connected set, the background neighbours 4-adjacent to the centre one 4-connected set of the
+    ring) with three or more neighbours, or exactly two that are perpendicular 4-neighbours (the corner of a
+    4-connected staircase). A pixel with a 4- and an adjacent diagonal neighbour is the tip of a line two
+    pixels thick: deleting it would shorten the line, one pixel per deletion.
+    """
+    table = np.zeros(256, dtype=bool)
+    four = ndi.generate_binary_structure(2, 1)
+    for code in range(1, 256):
+        patch = np.zeros((3, 3), dtype=bool)
+        for bit, (dr, dc) in enumerate(RING):
+            patch[1 + dr, 1 + dc] = (code >> bit) & 1
+        if patch.sum() < 2 or (patch.sum() == 2 and code & 0b10101010):  # odd bits: diagonal neighbours
+            continue
+        fg_components = ndi.label(patch, structure=_EIGHT)[1]
+        background = ~patch
+        background[1, 1] = False
+        labels = ndi.label(background, structure=four)[0]
+        touching = {labels[1 + dr, 1 + dc] for dr, dc in RING[::2]} - {0}
+        table[code] = fg_components == 1 and len(touching) == 1
+    return table
+
+
+def thin(mask: np.ndarray) -> np.ndarray:
+    """One-pixel-wide 8-connected skeleton of a crack mask.
+
+    Zhang & Suen (CACM 27(3), 1984) parallel thinning with Lu & Wang's correction (CACM 29(3), 1986),
+    then the simple points it leaves on staircases
+    are deleted one at a time, so every skeleton pixel with three or more neighbours is a real junction.
+
+    Parameters
+    ----------
+    mask : (H, W) bool.
+
+    Returns
+    -------
+    (H, W) bool skeleton, same connected components as ``mask``.
+    """
+    image = mask.astype(bool).copy()
+    tables = _zhang_suen_tables()
+    changed = True
+    while changed:
+        changed = False
+        for table in tables:
+            delete = image & table[_neighbour_codes(image)]
+            if delete.any():
+                image[delete] = False
+                changed = True
+    return _delete_redundant(image)
+
+
+def _delete_redundant(skeleton: np.ndarray) -> np.ndarray:
+    """Delete, one at a time (so two of them never go together), simple non-end points of a thin skeleton."""
+    removable = _removable_table()
+    padded = np.pad(skeleton, 1)
+    rows, cols = np.nonzero(skeleton & removable[_neighbour_codes(skeleton)])
+    for r, c in zip(rows + 1, cols + 1, strict=True):
+        code = sum(int(padded[r + dr, c + dc]) << bit for bit, (dr, dc) in enumerate(RING))
+        if removable[code]:
+            padded[r, c] = False
+    return padded[1:-1, 1:-1]
+
+
+def _neighbour_count(skeleton: np.ndarray) -> np.ndarray:
+    """(H, W) int32: number of 8-neighbours of each pixel that are set."""
+    kernel = np.ones((3, 3), np.float32)
+    kernel[1, 1] = 0
+    return np.rint(cv2.filter2D(skeleton.astype(np.float32), -1, kernel, borderType=cv2.BORDER_CONSTANT)).astype(
+        np.int32)
+
+
+def _order_branch(pixels: set[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The pixels of one branch (a path or a loop, 8-connected) in walking order, (row, col)."""
+    def neighbours(p: tuple[int, int]) -> list[tuple[int, int]]:
+        return [(p[0] + dr, p[1] + dc) for dr, dc in RING if (p[0] + dr, p[1] + dc) in pixels]
+
+    ends = [p for p in pixels if len(neighbours(p)) <= 1]
+    start = min(ends) if ends else min(pixels)  # a loop starts anywhere
+    path, seen = [start], {start}
+    while True:
+        step = [q for q in neighbours(path[-1]) if q not in seen]
+        if not step:
+            return path
+        # 4-neighbours first: on a thin path a diagonal step past one would skip a pixel
+        nxt = min(step, key=lambda q: abs(q[0] - path[-1][0]) + abs(q[1] - path[-1][1]))
+        path.append(nxt)
+        seen.add(nxt)
+
+
+@dataclass
+class _Branch:
+    """A skeleton path between ends and/or junctions, in pixel (row, col) coordinates."""
+
+    pixels: np.ndarray  # (N, 2) int64 ordered skeleton pixels
+    junctions: tuple[int, int]  # junction cluster at the start / end (0: none)
+    free: tuple[bool, bool]  # the start / end is a free end of the skeleton
+    closed: bool = False  # a loop with no junction
+
+
+def _branches(skeleton: np.ndarray) -> tuple[list[_Branch], np.ndarray, np.ndarray]:
+    """Split a thin skeleton at its junctions.
+
+    Returns
+    -------
+    branches : ordered paths between junction clusters and free ends.
+    junction_labels : (H, W) int32, 8-connected clusters of pixels with >= 3 neighbours, 1..J (0 elsewhere).
+    junction_centres : (J + 1, 2) float64 (row, col) centroid of each cluster (row 0 unused).
+    """
+    degree = _neighbour_count(skeleton)
+    junction_labels, n_junctions = ndi.label(skeleton & (degree >= 3), structure=_EIGHT)
+    centres = np.zeros((n_junctions + 1, 2))
+    if n_junctions:
+        centres[1:] = ndi.center_of_mass(np.ones_like(skeleton), junction_labels, range(1, n_junctions + 1))
+    padded = np.pad(junction_labels, 1)
+    branch_labels, n_branches = ndi.label(skeleton & (degree < 3), structure=_EIGHT)
+    branches = []
+    for index, box in enumerate(ndi.find_objects(branch_labels), start=1):
+        rows, cols = np.nonzero(branch_labels[box] == index)
+        pixels = {(int(r) + box[0].start, int(c) + box[1].start) for r, c in zip(rows, cols, strict=True)}
+        path = np.array(_order_branch(pixels), dtype=np.int64)
+        at_start = np.unique(padded[path[0, 0]:path[0, 0] + 3, path[0, 1]:path[0, 1] + 3])[1:].tolist()
+        at_end = np.unique(padded[path[-1, 0]:path[-1, 0] + 3, path[-1, 1]:path[-1, 1] + 3])[1:].tolist()
+        if len(path) == 1:  # one pixel between two junctions, or a one-pixel spur
+            at_end = at_start[1:]
+        ends = [at_start[0] if at_start else 0, at_end[-1] if at_end else 0]
+        loop = len(path) > 2 and max(abs(path[0] - path[-1])) <= 1 and ends == [0, 0]
+        free = tuple(j == 0 and degree[r, c] <= 1 for j, (r, c) in zip(ends, (path[0], path[-1]), strict=True))
+        branches.append(_Branch(path, (ends[0], ends[1]), (bool(free[0]), bool(free[1])), bool(loop)))
+    return branches, junction_labels, centres
+
+
+def _points(branch: _Branch, centres: np.ndarray) -> np.ndarray:
+    """(M, 2) float64 (row, col): the branch pixels with the centres of the junctions it ends on."""
+    parts = [centres[branch.junctions[0]][None]] if branch.junctions[0] else []
+    parts.append(branch.pixels.astype(np.float64))
+    if branch.junctions[1]:
+        parts.append(centres[branch.junctions[1]][None])
+    if branch.closed:
+        parts.append(branch.pixels[:1].astype(np.float64))
+    return np.concatenate(parts)
+
+
+def _prune_spurs(branches: list[_Branch], centres: np.ndarray, radius: np.ndarray,
+                 spur_factor: float) -> list[_Branch]:
+    """Drop branches from a junction to a free end shorter than ``spur_factor`` x the local radius (px).
+
+    A junction always keeps two branches (its longest spurs if need be), so a thick crack whose skeleton
+    forks near its tip keeps its length, and the end of a crack never disappears.
+    """
+    spurs: dict[int, list[tuple[float, int]]] = {}
+    attached: dict[int, int] = {}
+    for i, b in enumerate(branches):
+        for j in b.junctions:
+            attached[j] = attached.get(j, 0) + (j > 0)
+        if sum(b.free) == 1 and sum(j > 0 for j in b.junctions) == 1:
+            j = max(b.junctions)
+            r, c = np.rint(centres[j]).astype(int)
+            length = float(np.linalg.norm(np.diff(_points(b, centres), axis=0), axis=1).sum())
+            if length < spur_factor * max(float(radius[r, c]), 1.0):
+                spurs.setdefault(j, []).append((length, i))
+    dropped: set[int] = set()
+    for j, found in spurs.items():
+        keep = max(0, 2 - (attached[j] - len(found)))
+        dropped.update(i for _, i in sorted(found)[:len(found) - keep])
+    return [b for i, b in enumerate(branches) if i not in dropped]
+
+
+def smooth_path(points: np.ndarray, sigma: float, closed: bool = False) -> np.ndarray:
+    """Gaussian smoothing of an ordered path, ends fixed, to remove the staircase of pixel steps.
+
+    Open paths are extended by point reflection through each end (2 p_0 - p_k), which keeps the end in
+    place and a straight path straight; closed paths wrap around.
+
+    Parameters
+    ----------
+    points : (N, 2) float64, ordered.
+    sigma : Gaussian standard deviation along the path, in points.
+
+    Returns
+    -------
+    (N, 2) float64.
+    """
+    if sigma <= 0 or len(points) < 3:
+        return points.astype(np.float64)
+    if closed:
+        return ndi.gaussian_filter1d(points[:-1].astype(np.float64), sigma, axis=0, mode="wrap")[
+            np.r_[np.arange(len(points) - 1), 0]]
+    pad = min(len(points) - 1, int(np.ceil(4 * sigma)))
+    head = 2 * points[0] - points[1:pad + 1][::-1]
+    tail = 2 * points[-1] - points[-pad - 1:-1][::-1]
+    extended = np.concatenate([head, points, tail]).astype(np.float64)
+    return ndi.gaussian_filter1d(extended, sigma, axis=0, mode="nearest")[pad:pad + len(points)]
+
+
+def path_length(points: np.ndarray) -> float:
+    """Length of a polyline (N, 2), in its own units."""
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
+
+
+def _owned_lengths(points: np.ndarray) -> np.ndarray:
+    """(N,) the half-steps on either side of each point of a polyline (they sum to its length)."""
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    return np.r_[steps, 0.0] / 2 + np.r_[0.0, steps] / 2
+
+
+def area_per_pixel(mask: np.ndarray, skeleton: np.ndarray) -> np.ndarray:
+    """(H, W) float64: on each skeleton pixel, the number of mask pixels of its component nearest to it.
+
+    Summed along a stretch of skeleton and divided by the stretch's length this is the mean width there:
+    an unbiased width, unlike 2 x the distance transform, which jumps by a pixel between odd and even
+    widths because it is measured between pixel centres.
+    """
+    dist_input = np.where(skeleton, 0, 1).astype(np.uint8)
+    _, nearest = cv2.distanceTransformWithLabels(dist_input, cv2.DIST_L2, cv2.DIST_MASK_5,
+                                                 labelType=cv2.DIST_LABEL_PIXEL)
+    components = ndi.label(mask, structure=_EIGHT)[0]
+    owner = np.zeros(int(nearest.max()) + 1, dtype=np.int64)  # label of a skeleton pixel -> its flat index
+    owner[nearest[skeleton]] = np.flatnonzero(skeleton)
+    flat_owner = owner[nearest[mask]]
+    same = components.ravel()[flat_owner] == components[mask]
+    counts = np.bincount(flat_owner[same], minlength=mask.size).astype(np.float64)
+    return counts.reshape(mask.shape) * skeleton
+
+
+def principal_orientation(points: np.ndarray, weights: np.ndarray) -> float:
+    """Principal-axis direction of weighted points (N, 2) (x, y-down), degrees in [0, 180), y up."""
+    centre = np.average(points, axis=0, weights=weights)
+    d = points - centre
+    cov = (d * weights[:, None]).T @ d
+    _, vectors = np.linalg.eigh(cov)
+    vx, vy = vectors[:, -1]
+    return float(np.degrees(np.arctan2(-vy, vx)) % 180.0)
+
+
+def _local_widths(points: np.ndarray, areas: np.ndarray, free: tuple[bool, bool], half_window: int) -> np.ndarray:
+    """(N,) width (px) at each path point: mask area over path length in a window of 2 half_window + 1 points.
+
+    Points whose window reaches a free end are NaN: the mask beyond the tip of the skeleton (the end cap)
+    is all counted on the end pixel and would inflate the width there.
+    """
+    owned = _owned_lengths(points)
+    kernel = np.ones(2 * half_window + 1)
+    area_sum = ndi.convolve1d(areas, kernel, mode="constant")
+    length_sum = ndi.convolve1d(owned * (areas > 0), kernel, mode="constant")
+    widths = np.where(length_sum > 0, area_sum / np.maximum(length_sum, 1e-9), np.nan)
+    if free[0]:
+        widths[:half_window + 1] = np.nan
+    if free[1]:
+        widths[len(widths) - half_window - 1:] = np.nan
+    return widths
+
+
+def _branch_geometry(branch: _Branch, centres: np.ndarray, areas: np.ndarray, free: tuple[bool, bool],
+                     smoothing_px: float, half_window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothed (M, 2) (row, col) points of a branch and their local widths (M,) px (NaN: not measured)."""
+    points = smooth_path(_points(branch, centres), smoothing_px, branch.closed)
+    pixel_area = areas[branch.pixels[:, 0], branch.pixels[:, 1]]
+    head, tail = int(branch.junctions[0] > 0), int(branch.junctions[1] > 0) + int(branch.closed)
+    area = np.concatenate([np.zeros(head), pixel_area, np.zeros(tail)])  # junction centres own no area
+    return points, _local_widths(points, area, free, half_window)
+
+
+def measure_cracks(mask: np.ndarray, mm_per_px: float, *, min_length_mm: float = 0.0, smoothing_px: float = 2.0,
+                   spur_factor: float = 2.0, width_window_px: int = 6) -> list[Crack]:
+    """Measure every crack (8-connected component) of a crack mask.
+
+    Parameters
+    ----------
+    mask : (H, W) bool, True on crack pixels, in an orthorectified raster.
+    mm_per_px : the raster's ground sampling distance, mm per pixel.
+    min_length_mm : cracks shorter than this are dropped.
+    smoothing_px : Gaussian sigma (in path points) smoothing each branch before its length is summed, so the
+        staircase of an oblique pixel path (up to 8% too long at 22.5 degrees) does not count.
+    spur_factor : branches from a junction to a free end shorter than this times the local crack radius are
+        skeletonisation spurs and are dropped.
+    width_window_px : half-length of the stretch of path over which a local width is averaged, in points.
+
+    Returns
+    -------
+    One :class:`Crack` per component long enough, ordered by the component's first pixel (row-major).
+    """
+    if mask.ndim != 2:
+        raise ValueError(f"expected an (H, W) mask, got shape {mask.shape}")
+    if mm_per_px <= 0:
+        raise ValueError(f"mm_per_px must be positive, got {mm_per_px}")
+    mask = mask.astype(bool)
+    skeleton = thin(mask)
+    radius = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    branches, _, centres = _branches(skeleton)
+    branches = _prune_spurs(branches, centres, radius, spur_factor)
+    areas = area_per_pixel(mask, skeleton)
+    components, _ = ndi.label(mask, structure=_EIGHT)
+    by_component: dict[int, list[_Branch]] = {}
+    for b in branches:
+        by_component.setdefault(int(components[b.pixels[0, 0], b.pixels[0, 1]]), []).append(b)
+    attached = np.bincount([j for b in branches for j in b.junctions], minlength=len(centres))
+    boxes = ndi.find_objects(components)
+    cracks = []
+    for label in sorted(by_component):
+        crack = _measure_one(by_component[label], centres, areas, attached, boxes[label - 1], mm_per_px,
+                             smoothing_px, width_window_px)
+        if crack.length_mm >= min_length_mm:
+            cracks.append(crack)
+    return cracks
+
+
+def _measure_one(branches: list[_Branch], centres: np.ndarray, areas: np.ndarray, attached: np.ndarray,
+                 box: tuple[slice, slice], mm_per_px: float, smoothing_px: float, half_window: int) -> Crack:
+    """One crack from its branches (pixel units in, mm out)."""
+    paths, widths, ends = [], [], []
+    for b in branches:
+        free = tuple(f or (j > 0 and attached[j] == 1) for f, j in zip(b.free, b.junctions, strict=True))
+        points, local = _branch_geometry(b, centres, areas, (free[0], free[1]), smoothing_px, half_window)
+        paths.append(points)
+        widths.append(local)
+        ends += [p for p, f in zip((points[0], points[-1]), free, strict=True) if f and not b.closed]
+    owned = np.concatenate([_owned_lengths(p) for p in paths])
+    all_widths = np.concatenate(widths)
+    valid = np.isfinite(all_widths)
+    if not valid.any():  # too short for any window clear of the tips: area over length, caps included
+        total_area = sum(float(areas[b.pixels[:, 0], b.pixels[:, 1]].sum()) for b in branches)
+        all_widths, valid = np.full(len(owned), total_area / max(float(owned.sum()), 1.0)), np.ones(len(owned), bool)
+    xy = [p[:, ::-1] * mm_per_px for p in paths]  # (row, col) px -> (x, y) mm
+    points = np.concatenate(xy)
+    return Crack(
+        paths_mm=tuple(xy),
+        length_mm=sum(path_length(p) for p in xy),
+        mean_width_mm=float(np.average(all_widths[valid], weights=owned[valid] + 1e-12)) * mm_per_px,
+        max_width_mm=float(all_widths[valid].max()) * mm_per_px,
+        orientation_deg=principal_orientation(points, owned + 1e-12),
+        endpoints_mm=np.array(ends, dtype=np.float64).reshape(-1, 2)[:, ::-1] * mm_per_px,
+        bbox_mm=(box[1].start * mm_per_px, box[0].start * mm_per_px, (box[1].stop - 1) * mm_per_px,
+                 (box[0].stop - 1) * mm_per_px),
+    )
+
+
+def length_histogram(cracks: Sequence[Crack], bin_edges_mm: Sequence[float] = DEFAULT_LENGTH_BINS_MM) -> np.ndarray:
+    """(B,) int64 number of cracks per length bin; ``bin_edges_mm`` (B + 1,) increasing, the last may be inf."""
+    edges = np.asarray(bin_edges_mm, dtype=np.float64)
+    if edges.ndim != 1 or len(edges) < 2 or np.any(np.diff(edges) <= 0):
+        raise ValueError("bin_edges_mm must be at least two increasing values")
+    lengths = np.array([c.length_mm for c in cracks], dtype=np.float64)
+    index = np.searchsorted(edges, lengths, side="right") - 1  # bins closed on the left, like np.histogram's
+    inside = (index >= 0) & (index < len(edges) - 1)
+    return np.bincount(index[inside], minlength=len(edges) - 1).astype(np.int64)
+
+
+def summarise_cracks(cracks: Sequence[Crack], bin_edges_mm: Sequence[float] = DEFAULT_LENGTH_BINS_MM) -> CrackSummary:
+    """Count, total length, length-weighted mean width, max width and the length histogram of ``cracks``."""
+    lengths = np.array([c.length_mm for c in cracks], dtype=np.float64)
+    total = float(lengths.sum())
+    mean_width = float(np.dot(lengths, [c.mean_width_mm for c in cracks]) / total) if total > 0 else 0.0
+    return CrackSummary(
+        count=len(cracks),
+        total_length_mm=total,
+        mean_width_mm=mean_width,
+        max_width_mm=max((c.max_width_mm for c in cracks), default=0.0),
+        histogram_edges_mm=np.asarray(bin_edges_mm, dtype=np.float64),
+        histogram_counts=length_histogram(cracks, bin_edges_mm),
+    )
+
+
+def sample_crack(crack: Crack, step_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every <= ``step_mm`` along all branches of a crack.
+
+    Returns
+    -------
+    points : (M, 2) float64 (x, y) mm.
+    weights : (M,) float64 mm of crack each point stands for (they sum to ``crack.length_mm``).
+    """
+    points, weights = [], []
+    for path in crack.paths_mm:
+        if len(path) < 2:
+            continue
+        steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
+        along = np.r_[0.0, np.cumsum(steps)]
+        s = np.linspace(0.0, along[-1], max(2, int(np.ceil(along[-1] / step_mm)) + 1))
+        resampled = np.column_stack([np.interp(s, along, path[:, 0]), np.interp(s, along, path[:, 1])])
+        points.append(resampled)
+        weights.append(_owned_lengths(resampled))
+    if not points:
+        return np.zeros((0, 2)), np.zeros(0)
+    return np.concatenate(points), np.concatenate(weights)
+
+
+def overlap_fraction(crack: Crack, other: Crack, tolerance_mm: float) -> float:
+    """Fraction of ``crack``'s length that lies within ``tolerance_mm`` of ``other`` (0 to 1)."""
+    points, weights = sample_crack(crack, tolerance_mm / 2)
+    other_points, _ = sample_crack(other, tolerance_mm / 4)
+    if not len(points) or not len(other_points) or weights.sum() <= 0:
+        return 0.0
+    distance, _ = cKDTree(other_points).query(points, distance_upper_bound=tolerance_mm)
+    return float(weights[distance <= tolerance_mm].sum() / weights.sum())
+
+
+def _boxes_near(a: Crack, b: Crack, margin: float) -> bool:
+    ax0, ay0, ax1, ay1 = a.bbox_mm
+    bx0, by0, bx1, by1 = b.bbox_mm
+    return ax0 - margin <= bx1 and bx0 - margin <= ax1 and ay0 - margin <= by1 and by0 - margin <= ay1
+
+
+def match_cracks(previous: Sequence[Crack], current: Sequence[Crack], tolerance_mm: float, *,
+                 min_overlap: float = 0.5, min_growth_mm: float | None = None) -> list[CrackMatch]:
+    """Relate the cracks of a load stage to those of the stage before (same specimen raster, in mm).
+
+    A previous crack continues in the current crack that covers the largest part of it, if at least
+    ``min_overlap`` of its length lies within ``tolerance_mm`` of that current crack (several previous
+    cracks may join into one). A current crack continuing none is ``new``; else its growth is its length
+    minus theirs, and it is ``grown`` when that exceeds ``min_growth_mm`` (default ``tolerance_mm``,
+    below which length differences are measurement noise), ``unchanged`` otherwise.
+
+    Returns
+    -------
+    One :class:`CrackMatch` per current crack, in order.
+    """
+    if tolerance_mm <= 0:
+        raise ValueError(f"tolerance_mm must be positive, got {tolerance_mm}")
+    threshold = tolerance_mm if min_growth_mm is None else min_growth_mm
+    continues: dict[int, list[int]] = {i: [] for i in range(len(current))}
+    for j, old in enumerate(previous):
+        overlaps = [(overlap_fraction(old, new, tolerance_mm) if _boxes_near(old, new, tolerance_mm) else 0.0, i)
+                    for i, new in enumerate(current)]
+        best, i = max(overlaps, default=(0.0, -1))
+        if best >= min_overlap:
+            continues[i].append(j)
+    matches = []
+    for i, crack in enumerate(current):
+        if not continues[i]:
+            matches.append(CrackMatch(i, "new", crack.length_mm, ()))
+            continue
+        growth = max(0.0, crack.length_mm - sum(previous[j].length_mm for j in continues[i]))
+        matches.append(CrackMatch(i, "grown" if growth > threshold else "unchanged", growth, tuple(continues[i])))
+    return matches
