@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import rasterio
 
+from tests.conftest import shared_data
 from tests.terrain_scenes import TerrainFlight, make_terrain_flight
 from workers.algorithms.camera import Camera
 from workers.pipeline import process_directory
@@ -80,3 +81,16 @@ def test_orthomosaic_shows_the_ground_at_its_map_position(ortho) -> None:
     diff = np.abs(rgb - expected)[inner].mean()
     assert diff < 8.0, f"mean colour difference {diff:.1f} levels where the ground is at the ortho plane"
     assert report["mode"] == "ortho" and report["georeferenced"]
+
+
+@pytest.mark.realdata
+def test_brighton_strip_is_triangulated_and_orthorectified(tmp_path) -> None:
+    """The real DJI strip: every frame registered, sub-pixel reprojection, GPS fit and GSD as the EXIF expects."""
+    report = process_directory(shared_data("drone_brighton_strip1"), tmp_path / "job", {"mode": "ortho"})
+    tri = report["triangulation"]
+    assert tri["registered"] == tri["total"] == 6 and report["frames_rejected"] == []
+    assert tri["rms_px"] < 0.5 and tri["points"] > 500  # working px (2048 of 4000)
+    assert tri["gps_residual_rms_m"] < 2.0  # consumer GPS
+    # FC300S: 20 mm (35 mm equivalent) at 40 m above the take-off point: 18 mm per photo pixel
+    assert abs(report["gsd_original_m"] - 0.018) < 0.15 * 0.018
+    assert report["crs"] == "EPSG:32615"
