@@ -272,3 +272,33 @@ def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_p
     expect(page.get_by_test_id("quality")).to_be_visible()
     page.wait_for_load_state("networkidle")
     watch.assert_clean(live_service.url)
+
+
+def test_ortho_job_from_the_flight_page(watched_page, live_service, tmp_path) -> None:
+    """A user picks Ortho on the flight page; the finished job's card shows the real triangulation."""
+    from playwright.sync_api import expect
+
+    from tests.browser.support import JOB_TIMEOUT_MS, MOSAIC_TILES_SETTLED_JS, TERMINAL_STATUS_JS, wait_for
+    from tests.terrain_scenes import make_terrain_flight
+
+    page, watch = watched_page
+    flight = make_terrain_flight(tmp_path / "terrain", rows=2, per_row=4, frame_size=(480, 360), seed=6)
+    url = live_service.url
+    created = httpx.post(f"{url}/api/flights", json={"name": "Relief"}, timeout=10).json()
+    uploaded = httpx.post(f"{url}/api/flights/{created['id']}/images", files=_jpegs(flight.paths, "files"), timeout=60)
+    assert uploaded.status_code == 201, uploaded.text
+    page.goto(f"{url}/#/flights/{created['id']}")
+    page.get_by_test_id("mode-ortho").check()
+    page.get_by_test_id("start-job").click()
+    page.wait_for_url(re.compile(r"#/jobs/\d+$"))
+    wait_for(page, TERMINAL_STATUS_JS, JOB_TIMEOUT_MS, watch, "the ortho job did not finish")
+    expect(page.get_by_test_id("job-status")).to_have_text("succeeded")
+    expect(page.get_by_test_id("registered")).to_have_text("8 / 8")
+    rms = _numbers(page.get_by_test_id("rms-reprojection").inner_text())
+    assert rms and rms[0] < 0.5
+    expect(page.get_by_test_id("image-residual-row")).to_have_count(8)
+    wait_for(page, MOSAIC_TILES_SETTLED_JS, 30_000, watch, "the orthomosaic tiles did not settle")
+    gps = _numbers(page.get_by_test_id("gps-residual-rms").first.inner_text())
+    assert gps and gps[0] < 100  # cm: the synthetic GPS is exact, the prior assumes 5 m
+    _screenshot(page, "quality_ortho_real")
+    watch.assert_clean(url)

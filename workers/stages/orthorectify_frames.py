@@ -59,7 +59,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "homographies": {k: H.tolist() for k, H in homographies.items()},
         "frame_sizes": sizes, "ground_z": z0, "tie_point_rms_px": adjusted["report"]["rms_px"],
         "tie_points": adjusted["report"]["observations"], "rejected": rejected, "pairs": [], "dropped_pairs": []})
-    write_json(ws.georef_file(), geo)
+    write_json(ws.georef_file(), {**geo, "gps_residual_rms_m": adjusted["report"]["gps_residual_rms_m"]})
     progress(1.0, f"{len(homographies)} frames at {gsd * 100:.1f} cm/px")
     return {"frames": len(homographies), "rejected": len(rejected), "gsd_m": gsd, "ground_z": z0}
 
