@@ -109,4 +109,4 @@ class MeasureRequest(BaseModel):
 
     left: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
     right: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # same points, right photo
-    perturb_px: float = Field(0.5, ge=0.0, le=10.0)  # marking accuracy used for the uncertainty, px
+    perturb_px: float = Field(0.5, gt=0.0, le=10.0)  # marking accuracy used for the uncertainty, px

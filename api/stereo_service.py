@@ -39,7 +39,7 @@ def measure_with_rig(db: Database, settings: Settings, job_id: int, body: Measur
         outside = np.flatnonzero((px < -0.5).any(axis=1) | (px[:, 0] > cam.width - 0.5) | (px[:, 1] > cam.height - 0.5))
         if len(outside):
             raise InvalidInputError(f"{side} point {int(outside[0])} lies outside the {cam.width}x{cam.height} photo")
-    m = measure(rig, left, right, perturb_px=body.perturb_px or 1e-9)
+    m = measure(rig, left, right, perturb_px=body.perturb_px)
     n = len(left)
     return {
         "units": "mm (board units), left camera frame: x right, y down, z forward",
