@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -49,12 +50,27 @@ async def create_calibration(db: Database, settings: Settings, queue: JobQueue, 
     """
     config = validated_config(kind, options)
     _check_counts(kind, config, groups)
+
+    def check(frames: list[dict[str, Any]]) -> None:
+        _check_sizes(kind, frames)
+        _check_marks(config.get("markers", []), {f["name"] for f in frames})
+
+    return await record_photo_job(db, settings, queue, kind, options, config, groups, check)
+
+
+async def record_photo_job(db: Database, settings: Settings, queue: JobQueue, kind: str, options: dict[str, Any],
+                           config: dict[str, Any], groups: dict[str, list[UploadFile]],
+                           check: Callable[[list[dict[str, Any]]], None]) -> JobOut:
+    """Stage and validate the photos, ``check`` their frames (raise ``InvalidInputError``), then record the
+    job with its photos in its own folder and queue it; a failed request leaves nothing behind.
+
+    Frames are ``{"name", "side", "pair", "width", "height"}``, and ``"path"`` once stored.
+    """
     staging = Path(settings.data_dir) / "incoming" / uuid.uuid4().hex
     try:
         staged = {side: await stage_images(files, staging, settings) for side, files in groups.items()}
         frames = _frames(staged)
-        _check_sizes(kind, frames)
-        _check_marks(config.get("markers", []), {f["name"] for f in frames})
+        check(frames)
         with db.session() as s:
             job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued.value)
             s.add(job)
@@ -134,7 +150,8 @@ def _write_workspace(ws: JobWorkspace, staged: dict[str, list[StagedFile]], fram
     ws.save_inputs(frames)
 
 
-def _calibration_job(db: Database, job_id: int, kinds: tuple[str, ...], noun: str) -> JobOut:
+def job_of_kind(db: Database, job_id: int, kinds: tuple[str, ...], noun: str) -> JobOut:
+    """The job ``job_id`` if it is of one of ``kinds``, else 404 naming it a ``noun``."""
     with db.session() as s:
         job = s.get(Job, job_id)
         if job is None or job.kind not in kinds:
@@ -144,14 +161,14 @@ def _calibration_job(db: Database, job_id: int, kinds: tuple[str, ...], noun: st
 
 def get_calibration(db: Database, settings: Settings, job_id: int, kind: str) -> CalibrationOut:
     noun = "stereo rig" if kind == "stereo_calibration" else "calibration"
-    job = _calibration_job(db, job_id, (kind,), noun)
+    job = job_of_kind(db, job_id, (kind,), noun)
     result = job_workspace(settings.data_dir, job_id).calibration_file()
     return CalibrationOut(job=job, result=read_json(result) if result.exists() else None)
 
 
 def replace_markers(db: Database, settings: Settings, queue: JobQueue, job_id: int, body: MarksUpdate) -> JobOut:
     """Replace (or remove) the marks of some photos and solve again; the corner detection is kept."""
-    job = _calibration_job(db, job_id, ("calibration",), "calibration")
+    job = job_of_kind(db, job_id, ("calibration",), "calibration")
     if not JobStatus(job.status).finished:
         raise ConflictError(f"calibration {job_id} is {job.status}; change its marks once it has finished")
     ws = job_workspace(settings.data_dir, job_id)

@@ -8,7 +8,7 @@ from fastapi.staticfiles import StaticFiles
 from api.db import Database
 from api.errors import install_error_handlers
 from api.queue import CeleryQueue, JobQueue
-from api.routes import calibrations, flights, jobs, tiles, web
+from api.routes import calibrations, crack_surveys, flights, jobs, tiles, web
 from api.settings import Settings, get_settings
 
 
@@ -22,7 +22,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.db = Database(settings.resolved_database_url())
     app.state.queue = queue or CeleryQueue(settings.redis_url, settings.celery_queue)
     install_error_handlers(app)
-    for module in (flights, jobs, calibrations, tiles, web):
+    for module in (flights, jobs, calibrations, crack_surveys, tiles, web):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=settings.web_dir), name="static")
     vendor = settings.web_dir / "node_modules"

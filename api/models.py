@@ -110,3 +110,10 @@ class MeasureRequest(BaseModel):
     left: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
     right: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # same points, right photo
     perturb_px: float = Field(0.5, gt=0.0, le=10.0)  # marking accuracy used for the uncertainty, px
+
+
+class CrackSurveyOut(BaseModel):
+    """A crack-survey job and, once finished, its report (residuals, cracks per stage, stage comparisons)."""
+
+    job: JobOut
+    result: dict[str, Any] | None = None

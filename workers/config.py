@@ -6,9 +6,10 @@ OpenCV or the stage code.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 DistortionTerm = Literal["k1", "k2", "k3", "t1", "t2"]
 Convention = Literal["distort_ideal", "restore_ideal"]
@@ -110,10 +111,117 @@ def _check_pattern(pattern: tuple[int, int]) -> tuple[int, int]:
     return pattern
 
 
+class Specimen(BaseModel):
+    """The planar specimen: model frame X right, Y down the plate, Z = 0 on its surface, mm."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width_mm: float = Field(gt=0.0, le=100000.0)  # extent along X, mm
+    height_mm: float = Field(gt=0.0, le=100000.0)  # extent along Y, mm
+
+
+class ControlPoint(BaseModel):
+    """A point marked on a photo and its position on the specimen."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pixel: tuple[float, float]  # photo pixel (x, y), (0, 0) the centre of the first pixel
+    model: tuple[float, float, float]  # specimen (X, Y, Z), mm; Z = 0 on the surface
+
+
+class SurveyPhoto(BaseModel):
+    """One photo of a load stage and its control points."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    image: str = Field(min_length=1)  # the photo's file name as uploaded
+    control_points: list[ControlPoint]  # at least 4, not all on one line
+
+
+class LoadStage(BaseModel):
+    """The photos taken at one load."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    label: str = Field(min_length=1, max_length=100)  # e.g. "0 kN", "stage 2"
+    load: float | None = None  # the applied load, in the user's unit; reported as given
+    photos: list[SurveyPhoto] = Field(min_length=1)
+
+
+class CrackSurveyConfig(BaseModel):
+    """Options of a ``crack_survey`` job: cracks of a planar specimen measured in mm at each load stage."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    camera: dict[str, Any]  # the calibrated camera (camera JSON) that took every photo
+    specimen: Specimen
+    stages: list[LoadStage] = Field(min_length=1)  # in load order; each stage is compared with the one before
+    mm_per_px: float = Field(0.2, ge=0.005, le=50.0)  # resolution of the rectified specimen images, mm per px
+    max_rms_px: float = Field(5.0, gt=0.0, le=100.0)  # a photo whose control points fit worse fails the job, px
+    # how a stage with several photos is composed: at each point the photo that sees it most
+    # frontally at the finest resolution ("best"), or the mean of all photos that see it ("average")
+    compose: Literal["best", "average"] = "best"
+    threshold_low: float | None = Field(None, gt=0.0, lt=1.0)  # hysteresis low on crack probability; None: model's
+    threshold_high: float | None = Field(None, gt=0.0, lt=1.0)  # hysteresis high; None: the model's tuned value
+    # a detected crack whose pixels are (median) less than this fraction darker than the coating around
+    # it is dropped: the detector normalises contrast away and can take interpolated grain for a crack
+    min_crack_contrast: float = Field(0.08, ge=0.0, lt=1.0)
+    min_crack_length_mm: float = Field(1.0, ge=0.0, le=10000.0)  # shorter cracks are dropped, mm
+    # strip along the specimen's edges where nothing is detected, mm: the plate's edge, blurred over a few
+    # photo pixels (mm apiece in an oblique view), is a dark line
+    edge_margin_mm: float = Field(3.0, ge=0.0, le=1000.0)
+    match_tolerance_mm: float = Field(1.0, gt=0.0, le=100.0)  # a crack continues one of the stage before
+    # if it runs within this distance of it, mm
+    min_growth_mm: float = Field(2.0, ge=0.0, le=10000.0)  # smaller length gains are "unchanged", mm
+    cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec of the rectified images
+
+    @field_validator("stages")
+    @classmethod
+    def _check_photos(cls, stages: list[LoadStage], info: ValidationInfo) -> list[LoadStage]:
+        specimen = info.data.get("specimen")  # absent when it failed its own validation
+        seen: set[str] = set()
+        for s, stage in enumerate(stages):
+            for p, photo in enumerate(stage.photos):
+                if photo.image in seen:
+                    raise ValueError(f"photo {photo.image!r} is named twice; each photo belongs to one stage")
+                seen.add(photo.image)
+                if specimen is not None:
+                    _check_control_points(f"stage {s} photo {p} ({photo.image})", photo.control_points, specimen)
+        return stages
+
+
+MIN_CONTROL_POINTS = 4  # a plane-to-photo mapping has 8 degrees of freedom
+
+
+def _check_control_points(where: str, points: list[ControlPoint], specimen: Specimen) -> None:
+    """At least four points, on the specimen's surface and not all on one line."""
+    if len(points) < MIN_CONTROL_POINTS:
+        raise ValueError(f"{where}: {len(points)} control point(s); at least {MIN_CONTROL_POINTS} are needed")
+    tolerance = 1e-6 * max(specimen.width_mm, specimen.height_mm)
+    for k, point in enumerate(points):
+        x, y, z = point.model
+        if not (-tolerance <= x <= specimen.width_mm + tolerance and -tolerance <= y <= specimen.height_mm + tolerance
+                and abs(z) <= tolerance):
+            raise ValueError(f"{where}: control point {k} at model {list(point.model)} is outside the specimen "
+                             f"(0..{specimen.width_mm} x 0..{specimen.height_mm} mm, Z = 0)")
+    # collinear when the second moment of the model points has (almost) no spread across its main axis
+    xs, ys = [p.model[0] for p in points], [p.model[1] for p in points]
+    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+    sxx = sum((x - mx) ** 2 for x in xs) / len(xs)
+    syy = sum((y - my) ** 2 for y in ys) / len(ys)
+    sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / len(xs)
+    half_trace, det = (sxx + syy) / 2, sxx * syy - sxy * sxy
+    minor = half_trace - math.sqrt(max(half_trace**2 - det, 0.0))
+    major = 2 * half_trace - minor
+    if minor <= (1e-3) ** 2 * major:  # across-axis spread below 0.1% of the along-axis spread
+        raise ValueError(f"{where}: the control points lie on one line; they must span the specimen's plane")
+
+
 CalibrationConfig.model_rebuild()
 
 JOB_KINDS: dict[str, type[BaseModel]] = {"mosaic": MosaicConfig, "calibration": CalibrationConfig,
-                                         "stereo_calibration": StereoCalibrationConfig}
+                                         "stereo_calibration": StereoCalibrationConfig,
+                                         "crack_survey": CrackSurveyConfig}
 
 
 def build_config(kind: str, options: dict[str, Any] | None) -> BaseModel:

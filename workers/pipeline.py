@@ -46,6 +46,14 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
     "calibration": (StageSpec("detect_corners", 60), StageSpec("calibrate_camera", 40)),
     "calibration.plumb_line": (StageSpec("fit_plumb_line", 100),),
     "stereo_calibration": (StageSpec("detect_corners", 60), StageSpec("calibrate_stereo", 40)),
+    "crack_survey": (
+        StageSpec("orient_camera", 5),
+        StageSpec("rectify_specimen", 15),
+        StageSpec("detect_cracks", 50),
+        StageSpec("measure_cracks", 15),
+        StageSpec("compare_stages", 5),
+        StageSpec("write_crack_report", 10),
+    ),
 }
 # The option of a kind that selects a variant pipeline, and its default.
 VARIANT_OPTIONS = {"mosaic": ("mode", "planar"), "calibration": ("method", "chessboard")}

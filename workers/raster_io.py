@@ -25,6 +25,8 @@ def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
                       transform: list[float] | None) -> Iterator[BlockWriter]:
     """A 3-band uint8 tiled GeoTIFF with an internal mask; yields ``write(window, rgb, mask)``.
 
+    ``transform`` (GDAL's six coefficients) places the pixels; ``epsg`` names their CRS, None for none.
+
     ``rgb`` is (h, w, 3) uint8 in R, G, B order and ``mask`` (h, w) bool, True where there is data.
     """
     profile: dict[str, Any] = {
@@ -32,8 +34,10 @@ def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
         "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate",
         "photometric": "RGB", "BIGTIFF": "IF_SAFER", "num_threads": "ALL_CPUS",
     }
-    if epsg is not None and transform is not None:
-        profile.update(crs=CRS.from_epsg(epsg), transform=Affine(*transform))
+    if transform is not None:  # without an EPSG code: a local engineering frame (a specimen's mm), no CRS
+        profile["transform"] = Affine(*transform)
+        if epsg is not None:
+            profile["crs"] = CRS.from_epsg(epsg)
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
         def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
             dst.write(np.moveaxis(rgb, 2, 0), window=window)

@@ -177,6 +177,54 @@ class JobWorkspace:
             return np.load(path, mmap_mode="r" if mmap else None)
         return self.load_working_image(index, mmap)
 
+    # -- crack-survey jobs ------------------------------------------------------------------------
+    def orientation_file(self) -> Path:
+        """Each photo's pose from its control points and their residuals (``orient_camera``)."""
+        return self.root / "orientation.json"
+
+    def rectified_file(self, stage: int) -> Path:
+        """Load stage ``stage``'s photos rectified onto the specimen: image and coverage mask (``.npz``)."""
+        return self.root / "rectified" / f"stage_{stage:02d}.npz"
+
+    def save_rectified(self, stage: int, image: np.ndarray, mask: np.ndarray) -> None:
+        _save_npz(self.rectified_file(stage), image=image, mask=mask)
+
+    def load_rectified(self, stage: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(H, W, 3) uint8`` BGR rectified image and ``(H, W) bool`` mask of what the photos see."""
+        with np.load(self.rectified_file(stage)) as data:
+            return data["image"], data["mask"]
+
+    def crack_mask_file(self, stage: int) -> Path:
+        return self.root / "cracks" / f"stage_{stage:02d}_mask.npy"
+
+    def save_crack_mask(self, stage: int, mask: np.ndarray) -> None:
+        with atomic_path(self.crack_mask_file(stage)) as tmp:
+            np.save(tmp, mask)
+
+    def load_crack_mask(self, stage: int) -> np.ndarray:
+        """``(H, W) bool`` crack pixels of the rectified image of load stage ``stage``."""
+        return np.load(self.crack_mask_file(stage))
+
+    def measured_cracks_file(self, stage: int) -> Path:
+        """The cracks of load stage ``stage`` measured in mm (``measure_cracks``), JSON."""
+        return self.root / "cracks" / f"stage_{stage:02d}.json"
+
+    def comparison_file(self) -> Path:
+        """New / grown / unchanged cracks between consecutive load stages (``compare_stages``)."""
+        return self.root / "comparison.json"
+
+    def stage_cog_file(self, stage: int) -> Path:
+        return self.root / f"stage_{stage:02d}_rectified.tif"
+
+    def stage_overlay_file(self, stage: int) -> Path:
+        return self.root / f"stage_{stage:02d}_overlay.png"
+
+    def cracks_geojson_file(self) -> Path:
+        return self.root / "cracks.geojson"
+
+    def cracks_csv_file(self) -> Path:
+        return self.root / "cracks.csv"
+
     # -- outputs --------------------------------------------------------------------------------
     def mosaic_file(self) -> Path:
         return self.root / "mosaic.tif"
@@ -205,7 +253,11 @@ class JobWorkspace:
             "footprints.geojson": self.footprints_file(),
             "calibration.json": self.calibration_file(),
             "cameras.json": self.cameras_file(),
+            "cracks.geojson": self.cracks_geojson_file(),
+            "cracks.csv": self.cracks_csv_file(),
         }
+        for path in sorted([*self.root.glob("stage_*_rectified.tif"), *self.root.glob("stage_*_overlay.png")]):
+            named[path.name] = path
         return {name: path for name, path in named.items() if path.exists()}
 
 

@@ -18,7 +18,8 @@ from workers.workspace import job_workspace
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 
 MEDIA_TYPES = {".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
-               ".json": "application/json", ".geojson": "application/geo+json"}
+               ".json": "application/json", ".geojson": "application/geo+json", ".csv": "text/csv",
+               ".png": "image/png"}
 
 
 @router.post("", status_code=202, response_model=JobOut)

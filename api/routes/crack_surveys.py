@@ -1,0 +1,29 @@
+"""Crack surveys of a planar specimen: photos per load stage, rectified, cracks measured and compared."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, File, Form, UploadFile
+
+from api import crack_survey_service as service
+from api.calibration_service import parse_options
+from api.deps import DbDep, QueueDep, SettingsDep
+from api.models import CrackSurveyOut, JobOut
+
+router = APIRouter(prefix="/api", tags=["crack survey"])
+
+OPTIONS_HELP = ("JSON object (see CrackSurveyConfig): camera (camera JSON), specimen {width_mm, height_mm}, "
+                "stages [{label, load, photos: [{image, control_points: [{pixel: [x, y], model: [X, Y, 0]}]}]}]")
+
+
+@router.post("/crack-surveys", status_code=202, response_model=JobOut)
+async def create_crack_survey(db: DbDep, settings: SettingsDep, queue: QueueDep,
+                              files: list[UploadFile] = File(default=[], description="the photos the stages name"),
+                              options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
+    """Measure the cracks of a planar specimen at each load stage and compare consecutive stages."""
+    return await service.create_crack_survey(db, settings, queue, files, parse_options(options))
+
+
+@router.get("/crack-surveys/{job_id}", response_model=CrackSurveyOut)
+def get_crack_survey(job_id: int, db: DbDep, settings: SettingsDep) -> CrackSurveyOut:
+    """The job and, once finished, ``report.json``: control point residuals, cracks per stage, comparisons."""
+    return service.get_crack_survey(db, settings, job_id)

@@ -1,0 +1,229 @@
+"""A cracked planar specimen photographed obliquely per load stage by a real (pinhole + Brown) camera.
+
+Model frame: X right, Y down the plate, Z = 0 on its surface (Z grows into the plate), mm. The coating
+is a grain texture under a directional-light ramp; cracks are dark grooves of known width along known
+polylines. Every photo pixel is a ray of the true camera traced to the plane Z = 0 (as in
+``terrain_scenes``); a crack darkens the pixel by the fraction of its footprint it covers, so thin
+cracks seen obliquely are rendered without aliasing. Stage 2 keeps the cracks of stage 1, grows one and
+adds new ones.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from workers.algorithms.camera import Camera
+
+TEXTURE_MM_PER_PX = 0.1  # resolution of the coating texture and of the crack distance field
+MARKS_MM = ((50.0, 40.0), (150.0, 110.0), (60.0, 115.0))  # control marks besides the corners, (X, Y) mm
+
+
+@dataclass(frozen=True)
+class TrueCrack:
+    line_mm: np.ndarray  # (N, 2) float64 (x, y) mm centreline
+    width_mm: float
+    status: str  # "first" (stage 1), "unchanged", "grown" or "new" in stage 2
+
+    @property
+    def length_mm(self) -> float:
+        return float(np.linalg.norm(np.diff(self.line_mm, axis=0), axis=1).sum())
+
+
+@dataclass(frozen=True)
+class Photo:
+    path: Path
+    stage: int
+    view: int  # index into the views the scene was made with
+    R: np.ndarray  # (3, 3) true pose, X_cam = R (X - C)
+    C: np.ndarray  # (3,) mm
+    control_points: list[dict[str, list[float]]]  # {"pixel": [x, y] (noisy), "model": [X, Y, 0]}
+
+
+@dataclass
+class CrackSurveyScene:
+    width_mm: float
+    height_mm: float
+    camera: Camera
+    stages: list[list[TrueCrack]]  # the cracks present at each load stage
+    photos: list[Photo] = field(default_factory=list)
+
+    def options(self, mm_per_px: float, views: tuple[int, ...] | None = None) -> dict:
+        """The crack-survey options a user would send for these photos (only ``views``, by index, if given)."""
+        stages = [{"label": f"stage {s + 1}", "load": 10.0 * (s + 1),
+                   "photos": [{"image": p.path.name, "control_points": p.control_points}
+                              for p in self.photos if p.stage == s and (views is None or p.view in views)]}
+                  for s in range(len(self.stages))]
+        return {"camera": self.camera.to_json(), "specimen": {"width_mm": self.width_mm, "height_mm": self.height_mm},
+                "stages": stages, "mm_per_px": mm_per_px}
+
+    def paths(self, views: tuple[int, ...] | None = None) -> list[Path]:
+        return [p.path for p in self.photos if views is None or p.view in views]
+
+
+def wandering_line(rng: np.random.Generator, start: np.ndarray, angle: float, length_mm: float,
+                   step_mm: float = 1.0) -> np.ndarray:
+    """(N, 2) centreline of a gently wandering crack of ``length_mm`` from ``start``."""
+    points = [start]
+    for _ in range(int(round(length_mm / step_mm))):
+        angle += rng.normal(0, 0.04)
+        points.append(points[-1] + step_mm * np.array([math.cos(angle), math.sin(angle)]))
+    return np.array(points)
+
+
+def _place_cracks(rng: np.random.Generator, n: int, width_mm: float, height_mm: float, taken: list[np.ndarray],
+                  status: str, spacing_mm: float = 12.0, edge_mm: float = 8.0) -> list[TrueCrack]:
+    cracks: list[TrueCrack] = []
+    for _ in range(5000):
+        if len(cracks) == n:
+            return cracks
+        start = rng.uniform([edge_mm, edge_mm], [width_mm - edge_mm, height_mm - edge_mm])
+        line = wandering_line(rng, start, rng.uniform(0, 2 * np.pi), rng.uniform(50, 80))
+        inside = (line.min(axis=0) >= edge_mm).all() and (line.max(axis=0) <= [width_mm - edge_mm,
+                                                                               height_mm - edge_mm]).all()
+        far = all(np.min(np.linalg.norm(line[:, None] - other[None], axis=2)) > spacing_mm for other in taken)
+        if inside and far:
+            taken.append(line)
+            cracks.append(TrueCrack(line, float(rng.uniform(0.6, 1.2)), status))
+    raise RuntimeError(f"no room for {n} cracks {spacing_mm} mm apart")
+
+
+def _grow(rng: np.random.Generator, crack: TrueCrack, extra_mm: float) -> TrueCrack:
+    tail = crack.line_mm[-1] - crack.line_mm[-2]
+    more = wandering_line(rng, crack.line_mm[-1], math.atan2(tail[1], tail[0]), extra_mm)
+    return TrueCrack(np.vstack([crack.line_mm, more[1:]]), crack.width_mm, "grown")
+
+
+def make_stages(seed: int, width_mm: float, height_mm: float) -> list[list[TrueCrack]]:
+    """Stage 1: five cracks. Stage 2: the same, one of them (listed first) grown by 15 mm, and two new cracks."""
+    rng = np.random.default_rng(seed)
+    taken: list[np.ndarray] = []
+    first = _place_cracks(rng, 5, width_mm, height_mm, taken, "first")
+    found = _grow_one(rng, first, taken, width_mm, height_mm)
+    if found is None:
+        raise RuntimeError(f"seed {seed}: no room to grow any crack")
+    index, grown = found
+    taken[index] = grown.line_mm
+    unchanged = [TrueCrack(c.line_mm, c.width_mm, "unchanged") for k, c in enumerate(first) if k != index]
+    first.insert(0, first.pop(index))  # the grown crack first in both stages
+    return [first, [grown, *unchanged, *_place_cracks(rng, 2, width_mm, height_mm, taken, "new")]]
+
+
+def _grow_one(rng: np.random.Generator, cracks: list[TrueCrack], taken: list[np.ndarray], width_mm: float,
+              height_mm: float) -> tuple[int, TrueCrack] | None:
+    """One crack of ``cracks`` grown by 15 mm at its end, staying on the plate and away from the others."""
+    for index, crack in enumerate(cracks):
+        others = [t for k, t in enumerate(taken) if k != index]
+        for _ in range(40):
+            grown = _grow(rng, crack, 15.0)
+            extension = grown.line_mm[len(crack.line_mm):]
+            inside = (extension.min(axis=0) >= 8).all() and (extension.max(axis=0)
+                                                              <= [width_mm - 8, height_mm - 8]).all()
+            if inside and all(np.min(np.linalg.norm(extension[:, None] - o[None], axis=2)) > 12 for o in others):
+                return index, grown
+    return None
+
+
+def look_at(C: np.ndarray, target: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """World -> camera rotation of a camera at ``C`` looking at ``target``, image x along ``right``."""
+    z = (target - C) / np.linalg.norm(target - C)
+    x = right - (right @ z) * z
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def oblique_pose(camera: Camera, width_mm: float, height_mm: float, elevation_deg: float, azimuth_deg: float,
+                 fill: float = 0.85) -> tuple[np.ndarray, np.ndarray]:
+    """A camera seeing the whole plate at ``elevation_deg`` above its plane, from the direction
+    ``azimuth_deg`` (0: from +Y, the bottom of the plate), the plate filling ``fill`` of the frame."""
+    centre = np.array([width_mm / 2, height_mm / 2, 0.0])
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    direction = np.array([math.cos(e) * math.sin(a), math.cos(e) * math.cos(a), -math.sin(e)])
+    right = np.array([math.cos(a), -math.sin(a), 0.0])
+    corners = np.array([[0, 0, 0], [width_mm, 0, 0], [0, height_mm, 0], [width_mm, height_mm, 0]], float)
+    distance = 2.0 * max(width_mm, height_mm)
+    for _ in range(6):  # scale the distance until the plate spans ``fill`` of the limiting frame side
+        C = centre + distance * direction
+        R = look_at(C, centre, right)
+        uv = camera.project((corners - C) @ R.T)
+        span = max((uv[:, 0].max() - uv[:, 0].min()) / camera.width, (uv[:, 1].max() - uv[:, 1].min()) / camera.height)
+        distance *= span / fill
+    return R, centre + distance * direction
+
+
+def _coating(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) float32 grain of the coating around 150: standard deviations 6, 2 and 3 at 0.15, 1 and 3 mm."""
+    grain = np.full(shape, 150.0, np.float32)
+    for sigma_mm, amplitude in ((0.15, 6.0), (1.0, 2.0), (3.0, 3.0)):
+        s = sigma_mm / TEXTURE_MM_PER_PX
+        noise = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), s)
+        grain += amplitude * noise / noise.std()
+    return grain
+
+
+def crack_field(cracks: list[TrueCrack], shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) float32 on the texture grid: max over cracks of (half width - distance to its centreline), mm."""
+    field = np.full(shape, -1e3, np.float32)
+    for crack in cracks:
+        canvas = np.full(shape, 255, np.uint8)
+        points = np.rint(crack.line_mm / TEXTURE_MM_PER_PX * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(canvas, [points], False, 0, 1, cv2.LINE_8, shift=4)
+        distance = cv2.distanceTransform(canvas, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * TEXTURE_MM_PER_PX
+        field = np.maximum(field, crack.width_mm / 2 - distance)
+    return field
+
+
+def render_photo(camera: Camera, R: np.ndarray, C: np.ndarray, coating: np.ndarray, field_mm: np.ndarray,
+                 width_mm: float, height_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) uint8: the plate (coating under a light ramp, cracks) on a dark background, with noise."""
+    u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+    rays = camera.unproject(np.column_stack([u.ravel(), v.ravel()])) @ R  # R.T @ ray per row
+    t = -C[2] / rays[:, 2]
+    xy = (C[:2] + t[:, None] * rays[:, :2]).reshape(camera.height, camera.width, 2)
+    on_plate = (t.reshape(xy.shape[:2]) > 0) & (xy[..., 0] >= 0) & (xy[..., 0] <= width_mm) \
+        & (xy[..., 1] >= 0) & (xy[..., 1] <= height_mm)
+    col, row = (xy[..., 0] / TEXTURE_MM_PER_PX).astype(np.float32), (xy[..., 1] / TEXTURE_MM_PER_PX).astype(np.float32)
+    albedo = cv2.remap(coating, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    inside = cv2.remap(field_mm, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    # the pixel's footprint on the plate (mm): a crack darkens it by the share of the footprint it covers
+    du, dv = np.gradient(xy, axis=1), np.gradient(xy, axis=0)
+    footprint = np.sqrt(np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]))
+    cover = np.clip(0.5 + inside / footprint, 0.0, 1.0)
+    light = 0.75 + 0.5 * (0.6 * xy[..., 0] / width_mm + 0.4 * (1 - xy[..., 1] / height_mm))  # from the top right
+    image = np.where(on_plate, albedo * light * (1 - 0.5 * cover), 45.0) + rng.normal(0, 3.0, on_plate.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def make_crack_survey(out_dir: Path, views: list[tuple[float, float]], seed: int = 0, width_mm: float = 200.0,
+                      height_mm: float = 150.0, frame_size: tuple[int, int] = (900, 700)) -> CrackSurveyScene:
+    """Render two load stages, each photographed from ``views`` (elevation, azimuth) degrees, to PNGs.
+
+    The camera is re-set between stages (a few mm and a degree off); control points are the plate's corners
+    and ``MARKS_MM``, projected through the true camera with 0.3 px noise.
+    """
+    rng = np.random.default_rng(seed)
+    w, h = frame_size
+    camera = Camera(w, h, 1.05 * w, 1.05 * w, w / 2 + 6.0, h / 2 - 4.0, k1=-0.09, k2=0.04, t1=3e-4, t2=-2e-4)
+    scene = CrackSurveyScene(width_mm, height_mm, camera, make_stages(seed, width_mm, height_mm))
+    shape = (int(round(height_mm / TEXTURE_MM_PER_PX)) + 1, int(round(width_mm / TEXTURE_MM_PER_PX)) + 1)
+    coating = _coating(rng, shape)
+    model = np.array([[0, 0, 0], [width_mm, 0, 0], [0, height_mm, 0], [width_mm, height_mm, 0],
+                      *[[x, y, 0] for x, y in MARKS_MM]], float)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for s, cracks in enumerate(scene.stages):
+        field_mm = crack_field(cracks, shape)
+        for k, (elevation, azimuth) in enumerate(views):
+            R, C = oblique_pose(camera, width_mm, height_mm, elevation + rng.uniform(-1, 1),
+                                azimuth + rng.uniform(-2, 2))
+            C = C + rng.uniform(-3, 3, 3)
+            image = render_photo(camera, R, C, coating, field_mm, width_mm, height_mm, rng)
+            path = out_dir / f"stage{s + 1}_view{k + 1}_{int(elevation)}deg.png"
+            cv2.imwrite(str(path), image)
+            pixels = camera.project((model - C) @ R.T) + rng.normal(0, 0.3, (len(model), 2))
+            points = [{"pixel": p.tolist(), "model": m.tolist()} for p, m in zip(pixels, model, strict=True)]
+            scene.photos.append(Photo(path, s, k, R, C, points))
+    return scene

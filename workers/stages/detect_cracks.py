@@ -1,0 +1,70 @@
+"""Stage ``detect_cracks``: the crack mask of every load stage's rectified image."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy import ndimage as ndi
+
+from workers.algorithms.cracks import detect_cracks, to_gray
+from workers.config import CrackSurveyConfig
+from workers.pipeline import PipelineError
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
+
+
+def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
+    """Write ``cracks/stage_NN_mask.npy`` per load stage: (H, W) bool crack pixels inside what the photos see."""
+    margin_px = int(np.ceil(cfg.edge_margin_mm / cfg.mm_per_px))
+    pixels = []
+    for s in range(len(cfg.stages)):
+        progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
+        image, seen = ws.load_rectified(s)
+        # unseen parts get the seen part's median: a hard black border would look like a crack to the detector
+        filled = image.copy()
+        filled[~seen] = np.median(image[seen], axis=0).astype(np.uint8)
+        try:
+            mask = detect_cracks(filled, low=cfg.threshold_low, high=cfg.threshold_high)
+        except ValueError as exc:
+            raise PipelineError(f"options.threshold_low/high: {exc}") from None
+        mask = dark_enough(filled, mask & _trusted(seen, margin_px), cfg.min_crack_contrast,
+                           background_px=max(2.0 / cfg.mm_per_px, 4.0))
+        ws.save_crack_mask(s, mask)
+        pixels.append(int(mask.sum()))
+    progress(1.0, f"{len(cfg.stages)} stage(s)")
+    return {"stages": len(cfg.stages), "crack_pixels": pixels}
+
+
+def _trusted(seen: np.ndarray, margin_px: int) -> np.ndarray:
+    """(H, W) bool: seen pixels at least ``margin_px`` from the unseen part and from the specimen's edges,
+    where the plate's own edge or the end of a photo would be found as a crack."""
+    if margin_px <= 0:
+        return seen
+    padded = np.pad(seen, margin_px, constant_values=False).astype(np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1))
+    inner = cv2.erode(padded, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return inner[margin_px:-margin_px, margin_px:-margin_px].astype(bool)
+
+
+def dark_enough(image: np.ndarray, mask: np.ndarray, min_contrast: float, background_px: float) -> np.ndarray:
+    """``mask`` without the 8-connected cracks whose median darkening is below ``min_contrast``.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 BGR rectified image.
+    mask : (H, W) bool detected crack pixels.
+    min_contrast : least median of ``1 - grey / background`` over a crack's pixels.
+    background_px : Gaussian scale of the coating's local grey level around a crack (crack pixels excluded), px.
+    """
+    if min_contrast <= 0 or not mask.any():
+        return mask
+    grey = to_gray(image)
+    free = (~mask).astype(np.float32)
+    background = cv2.GaussianBlur(grey * free, (0, 0), background_px) / np.maximum(
+        cv2.GaussianBlur(free, (0, 0), background_px), 1e-3)
+    darkening = 1.0 - grey / np.maximum(background, 1.0)
+    labels, n = ndi.label(mask, structure=np.ones((3, 3), bool))
+    medians = ndi.median(darkening, labels, index=np.arange(1, n + 1))
+    keep = np.r_[False, np.asarray(medians) >= min_contrast]
+    return np.asarray(keep[labels])

@@ -1,0 +1,109 @@
+"""Stage ``write_crack_report``: the crack survey's outputs.
+
+Per load stage a rectified COG (no CRS: a local engineering frame in mm, pixel (col, row) centred on the
+specimen point (col, row) * mm_per_px, so Y runs down the plate as in the model frame) and an overlay PNG;
+for all stages ``cracks.geojson`` (polylines in specimen mm), ``cracks.csv`` and ``report.json``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from typing import Any
+
+import cv2
+import numpy as np
+from rasterio.windows import Window
+
+from workers.config import CrackSurveyConfig
+from workers.raster_io import open_block_writer, translate_to_cog
+from workers.stages.measure_cracks import load_stage_cracks
+from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress, read_json, write_json
+
+STATUS_BGR = {"first": (0, 200, 255), "new": (0, 0, 255), "grown": (255, 0, 255), "unchanged": (0, 200, 0)}
+CSV_FIELDS = ("stage", "stage_label", "load", "id", "length_mm", "mean_width_mm", "max_width_mm", "orientation_deg",
+              "status", "growth_mm", "x_min_mm", "y_min_mm", "x_max_mm", "y_max_mm")
+
+
+def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
+    """Write the rectified COGs and overlays, ``cracks.geojson``, ``cracks.csv`` and ``report.json``."""
+    pairs = read_json(ws.comparison_file())["pairs"]
+    stages, rows = [], []
+    for s, stage in enumerate(cfg.stages):
+        progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
+        cracks = crack_rows(ws, cfg, s, pairs[s - 1]["cracks"] if s > 0 else None)
+        image, mask = ws.load_rectified(s)
+        _write_cog(ws, s, image, mask, cfg)
+        _write_overlay(ws, s, image, cracks, cfg.mm_per_px)
+        _, summary = load_stage_cracks(ws, s)
+        stages.append({"index": s, "label": stage.label, "load": stage.load, "coverage": float(mask.mean()),
+                       **summary, "rectified": ws.stage_cog_file(s).name, "overlay": ws.stage_overlay_file(s).name,
+                       "cracks": cracks})
+        rows += cracks
+    write_json(ws.cracks_geojson_file(), _geojson(rows))
+    _write_csv(ws, rows)
+    report = {"kind": "crack_survey", "mm_per_px": cfg.mm_per_px, "specimen": cfg.specimen.model_dump(),
+              "frame": "specimen mm: X right, Y down the plate, origin at its corner",
+              "photos": read_json(ws.orientation_file())["photos"], "stages": stages,
+              "comparisons": [{k: v for k, v in p.items() if k != "cracks"} for p in pairs]}
+    write_json(ws.report_file(), report)
+    progress(1.0, "report written")
+    return {"stages": len(stages), "cracks": len(rows)}
+
+
+def crack_rows(ws: JobWorkspace, cfg: CrackSurveyConfig, s: int, matches: list[dict[str, Any]] | None
+               ) -> list[dict[str, Any]]:
+    """Every crack of stage ``s`` with its status against the stage before ("first" for the first stage)."""
+    stage = cfg.stages[s]
+    cracks, _ = load_stage_cracks(ws, s)
+    rows = []
+    for k, crack in enumerate(cracks):
+        match = matches[k] if matches is not None else {"status": "first", "growth_mm": None, "previous": []}
+        rows.append({"stage": s, "stage_label": stage.label, "load": stage.load, "id": k,
+                     "length_mm": crack.length_mm, "mean_width_mm": crack.mean_width_mm,
+                     "max_width_mm": crack.max_width_mm, "orientation_deg": crack.orientation_deg,
+                     "status": match["status"], "growth_mm": match["growth_mm"], "previous": match["previous"],
+                     "bbox_mm": list(crack.bbox_mm), "paths_mm": [p.tolist() for p in crack.paths_mm]})
+    return rows
+
+
+def _write_cog(ws: JobWorkspace, s: int, image: np.ndarray, mask: np.ndarray, cfg: CrackSurveyConfig) -> None:
+    step = cfg.mm_per_px
+    tmp = ws.root / f"stage_{s:02d}.tmp.tif"
+    height, width = mask.shape
+    with open_block_writer(tmp, width, height, None, [step, 0.0, -step / 2, 0.0, step, -step / 2]) as write:
+        write(Window(0, 0, width, height), cv2.cvtColor(image, cv2.COLOR_BGR2RGB), mask)
+    translate_to_cog(tmp, ws.stage_cog_file(s), cfg.cog_compression)
+    tmp.unlink(missing_ok=True)
+
+
+def _write_overlay(ws: JobWorkspace, s: int, image: np.ndarray, cracks: list[dict[str, Any]], mm_per_px: float) -> None:
+    """The rectified image with every crack drawn in its status colour."""
+    overlay = image.copy()
+    for crack in cracks:
+        for path in crack["paths_mm"]:
+            points = np.rint(np.array(path) / mm_per_px * 4).astype(np.int32).reshape(-1, 1, 2)  # 2 bits subpixel
+            cv2.polylines(overlay, [points], False, STATUS_BGR[crack["status"]], 1, cv2.LINE_AA, shift=2)
+    ok, png = cv2.imencode(".png", overlay)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    with atomic_path(ws.stage_overlay_file(s)) as tmp:
+        tmp.write_bytes(png.tobytes())
+
+
+def _geojson(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    features = [{"type": "Feature", "geometry": {"type": "MultiLineString", "coordinates": row["paths_mm"]},
+                 "properties": {k: v for k, v in row.items() if k != "paths_mm"}} for row in rows]
+    # not geographic: coordinates are specimen mm (X right, Y down the plate); RFC 7946 has no CRS member
+    return {"type": "FeatureCollection", "units": "mm", "frame": "specimen", "features": features}
+
+
+def _write_csv(ws: JobWorkspace, rows: list[dict[str, Any]]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, CSV_FIELDS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        x0, y0, x1, y1 = row["bbox_mm"]
+        writer.writerow({**row, "x_min_mm": x0, "y_min_mm": y0, "x_max_mm": x1, "y_max_mm": y1})
+    with atomic_path(ws.cracks_csv_file()) as tmp:
+        tmp.write_text(buffer.getvalue())
