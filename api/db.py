@@ -8,7 +8,20 @@ from contextlib import contextmanager
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator, create_engine, event
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    TypeDecorator,
+    create_engine,
+    event,
+    inspect,
+    text,
+)
 from sqlalchemy.engine import Dialect, Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship, sessionmaker
 
@@ -105,12 +118,36 @@ class Database:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         Base.metadata.create_all(self.engine)
+        _allow_jobs_without_flight(self.engine)
 
     @contextmanager
     def session(self) -> Iterator[Session]:
         """A session that commits on success and rolls back on any error."""
         with self._sessions() as session, session.begin():
             yield session
+
+
+def _allow_jobs_without_flight(engine: Engine) -> None:
+    """Upgrade a database made before calibration jobs, whose ``jobs.flight_id`` was NOT NULL.
+
+    PostgreSQL drops the constraint in place; SQLite cannot, so the table is rebuilt and its rows copied,
+    in one transaction: every job already recorded is kept as it was.
+    """
+    column = next(c for c in inspect(engine).get_columns("jobs") if c["name"] == "flight_id")
+    if column["nullable"]:
+        return
+    table = Job.__table__
+    with engine.begin() as conn:
+        if engine.dialect.name != "sqlite":
+            conn.execute(text("ALTER TABLE jobs ALTER COLUMN flight_id DROP NOT NULL"))
+            return
+        conn.execute(text("ALTER TABLE jobs RENAME TO jobs_before_upgrade"))
+        for index in table.indexes:  # type: ignore[attr-defined]
+            conn.execute(text(f"DROP INDEX IF EXISTS {index.name}"))
+        table.create(conn)  # type: ignore[attr-defined]
+        names = ", ".join(c.name for c in table.columns)  # type: ignore[attr-defined]
+        conn.execute(text(f"INSERT INTO jobs ({names}) SELECT {names} FROM jobs_before_upgrade"))
+        conn.execute(text("DROP TABLE jobs_before_upgrade"))
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
