@@ -11,11 +11,11 @@ from typing import Any
 
 from fastapi import UploadFile
 
-from api.calibration_service import job_of_kind, record_photo_job
 from api.db import Database
 from api.errors import InvalidInputError
 from api.job_service import validated_config
-from api.models import CrackSurveyOut, JobOut
+from api.models import JobOut, JobResultOut
+from api.photo_jobs import job_of_kind, record_photo_job
 from api.queue import JobQueue
 from api.settings import Settings
 from workers.algorithms.camera import Camera
@@ -60,7 +60,7 @@ def _check_photo(frame: dict[str, Any], photo: dict[str, Any], camera: Camera) -
             raise InvalidInputError(f"{frame['name']}: control point {k} at pixel [{x}, {y}] is outside the photo")
 
 
-def get_crack_survey(db: Database, settings: Settings, job_id: int) -> CrackSurveyOut:
+def get_crack_survey(db: Database, settings: Settings, job_id: int) -> JobResultOut:
     job = job_of_kind(db, job_id, (KIND,), "crack survey")
     report = job_workspace(settings.data_dir, job_id).report_file()
-    return CrackSurveyOut(job=job, result=read_json(report) if report.exists() else None)
+    return JobResultOut(job=job, result=read_json(report) if report.exists() else None)

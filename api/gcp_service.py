@@ -8,26 +8,16 @@ from typing import Any
 
 from api.db import Database, Flight
 from api.errors import InvalidInputError, NotFoundError, TooLargeError
-from workers.algorithms.gcp import GroundControlPoint, LocalFrame, parse_gcp_list, parse_opensfm_gcps
-from workers.workspace import atomic_path, flight_folder
+from workers.algorithms.gcp import GCP_FILE_NAMES, GroundControlPoint, LocalFrame, gcp_file_name, parse_gcp_file
+from workers.workspace import atomic_path, find_gcp_file, flight_folder
 
-GCP_NAMES = ("gcp_list.txt", "ground_control_points.json")
 MAX_GCP_BYTES = 5 * 1024 * 1024
 CHECK_FRAME = LocalFrame(epsg=32631, easting0=0.0, northing0=0.0)  # positions are not used when checking
 
 
 def gcp_file(data_dir: Path, flight_id: int) -> Path | None:
     """The flight's GCP file, if it has one."""
-    folder = flight_folder(data_dir, flight_id).parent
-    return next((folder / n for n in GCP_NAMES if (folder / n).exists()), None)
-
-
-def read_gcps(path: Path, image_sizes: dict[str, tuple[int, int]], frame: LocalFrame) -> list[GroundControlPoint]:
-    """Parse a stored GCP file; ``ValueError`` naming the line or entry at fault."""
-    text = path.read_text(encoding="utf-8")
-    if path.name == "gcp_list.txt":
-        return parse_gcp_list(text, frame)
-    return parse_opensfm_gcps(text, image_sizes, frame)
+    return find_gcp_file(flight_folder(data_dir, flight_id).parent)
 
 
 def store_gcps(db: Database, data_dir: Path, flight_id: int, filename: str, content: bytes) -> dict[str, Any]:
@@ -39,10 +29,10 @@ def store_gcps(db: Database, data_dir: Path, flight_id: int, filename: str, cont
         sizes = {i.filename: (i.width, i.height) for i in flight.images}
     if len(content) > MAX_GCP_BYTES:
         raise TooLargeError(f"{filename}: a GCP file over {MAX_GCP_BYTES} bytes is not a GCP file")
-    name = "ground_control_points.json" if filename.lower().endswith(".json") else "gcp_list.txt"
+    name = gcp_file_name(filename)
     try:
         text = content.decode("utf-8")
-        gcps = _parse(name, text, sizes)
+        gcps = parse_gcp_file(name, text, sizes, CHECK_FRAME)
     except UnicodeDecodeError:
         raise InvalidInputError(f"{filename}: not a UTF-8 text file") from None
     except ValueError as exc:
@@ -52,16 +42,10 @@ def store_gcps(db: Database, data_dir: Path, flight_id: int, filename: str, cont
     folder = flight_folder(data_dir, flight_id).parent
     with atomic_path(folder / name) as tmp:
         tmp.write_text(text, encoding="utf-8")
-    for other in GCP_NAMES:
+    for other in GCP_FILE_NAMES:
         if other != name:
             (folder / other).unlink(missing_ok=True)
     return gcp_summary(name, gcps, sizes)
-
-
-def _parse(name: str, text: str, sizes: dict[str, tuple[int, int]]) -> list[GroundControlPoint]:
-    if name == "gcp_list.txt":
-        return parse_gcp_list(text, CHECK_FRAME)
-    return parse_opensfm_gcps(text, sizes, CHECK_FRAME)
 
 
 def gcp_summary(name: str, gcps: list[GroundControlPoint], sizes: dict[str, tuple[int, int]]) -> dict[str, Any]:

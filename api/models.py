@@ -65,7 +65,7 @@ class JobCreate(BaseModel):
 
 class JobOut(BaseModel):
     id: int
-    flight_id: int | None  # None for calibration jobs
+    flight_id: int | None  # None for calibration and crack-survey jobs, whose photos are their own
     kind: str
     status: str
     stage: str
@@ -89,8 +89,9 @@ class OutputsOut(BaseModel):
     outputs: list[OutputOut]
 
 
-class CalibrationOut(BaseModel):
-    """A calibration or stereo-rig job and, once solved, its result (camera JSON, RMS, per-point errors)."""
+class JobResultOut(BaseModel):
+    """A calibration, stereo-rig or crack-survey job and, once it has one, its result: the camera or rig
+    JSON with RMS and per-point errors, or the survey's report."""
 
     job: JobOut
     result: dict[str, Any] | None = None
@@ -110,10 +111,3 @@ class MeasureRequest(BaseModel):
     left: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
     right: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # same points, right photo
     perturb_px: float = Field(0.5, gt=0.0, le=10.0)  # marking accuracy used for the uncertainty, px
-
-
-class CrackSurveyOut(BaseModel):
-    """A crack-survey job and, once finished, its report (residuals, cracks per stage, stage comparisons)."""
-
-    job: JobOut
-    result: dict[str, Any] | None = None

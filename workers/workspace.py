@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from workers.algorithms.gcp import GCP_FILE_NAMES
+
 
 @contextmanager
 def atomic_path(target: Path, suffix: str = "") -> Iterator[Path]:
@@ -78,8 +80,12 @@ class JobWorkspace:
         write_json(self.config_file(), config)
 
     def gcp_dir(self) -> Path:
-        """The job's copy of its flight's GCP file (``gcp_list.txt`` or ``ground_control_points.json``)."""
+        """Where the job keeps its copy of its flight's GCP file."""
         return self.root / "gcp"
+
+    def gcp_file(self) -> Path | None:
+        """The job's GCP file (``gcp_list.txt`` or ``ground_control_points.json``), if it has one."""
+        return find_gcp_file(self.gcp_dir())
 
     # -- load_images ----------------------------------------------------------------------------
     def frames_file(self) -> Path:
@@ -106,12 +112,11 @@ class JobWorkspace:
         return self.root / "work" / f"frame_{index:04d}.npy"
 
     def save_working_image(self, index: int, image: np.ndarray) -> None:
-        with atomic_path(self.working_image_file(index)) as tmp:
-            np.save(tmp, image)
+        _save_npy(self.working_image_file(index), image)
 
     def load_working_image(self, index: int, mmap: bool = False) -> np.ndarray:
         """``(H, W, 3) uint8`` BGR; memory-mapped on request, so windows cost only what they read."""
-        return np.load(self.working_image_file(index), mmap_mode="r" if mmap else None)
+        return _load_npy(self.working_image_file(index), mmap)
 
     # -- detect_features ------------------------------------------------------------------------
     def features_file(self, index: int) -> Path:
@@ -170,12 +175,14 @@ class JobWorkspace:
     def ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"
 
+    def save_ortho_image(self, index: int, image: np.ndarray) -> None:
+        """``(H, W, 3) uint8`` BGR: the working copy undistorted and cut to the ground it sees."""
+        _save_npy(self.ortho_image_file(index), image)
+
     def load_compose_image(self, index: int, mmap: bool = False) -> np.ndarray:
         """The image ``compose_mosaic`` warps: the undistorted ortho frame if there is one, else the working copy."""
         path = self.ortho_image_file(index)
-        if path.exists():
-            return np.load(path, mmap_mode="r" if mmap else None)
-        return self.load_working_image(index, mmap)
+        return _load_npy(path, mmap) if path.exists() else self.load_working_image(index, mmap)
 
     # -- crack-survey jobs ------------------------------------------------------------------------
     def orientation_file(self) -> Path:
@@ -198,12 +205,11 @@ class JobWorkspace:
         return self.root / "cracks" / f"stage_{stage:02d}_mask.npy"
 
     def save_crack_mask(self, stage: int, mask: np.ndarray) -> None:
-        with atomic_path(self.crack_mask_file(stage)) as tmp:
-            np.save(tmp, mask)
+        _save_npy(self.crack_mask_file(stage), mask)
 
     def load_crack_mask(self, stage: int) -> np.ndarray:
         """``(H, W) bool`` crack pixels of the rectified image of load stage ``stage``."""
-        return np.load(self.crack_mask_file(stage))
+        return _load_npy(self.crack_mask_file(stage))
 
     def measured_cracks_file(self, stage: int) -> Path:
         """The cracks of load stage ``stage`` measured in mm (``measure_cracks``), JSON."""
@@ -261,6 +267,15 @@ class JobWorkspace:
         return {name: path for name, path in named.items() if path.exists()}
 
 
+def _save_npy(path: Path, array: np.ndarray) -> None:
+    with atomic_path(path, suffix=".npy") as tmp:
+        np.save(tmp, np.ascontiguousarray(array))
+
+
+def _load_npy(path: Path, mmap: bool = False) -> np.ndarray:
+    return np.load(path, mmap_mode="r" if mmap else None)
+
+
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez(tmp, allow_pickle=False, **arrays)
@@ -277,6 +292,11 @@ def noop_progress(_fraction: float, _detail: str) -> None:
 def job_workspace(data_dir: Path, job_id: int) -> JobWorkspace:
     """Where the job ``job_id`` keeps its files under the service's data folder."""
     return JobWorkspace(Path(data_dir) / "jobs" / str(int(job_id)))
+
+
+def find_gcp_file(folder: Path) -> Path | None:
+    """The GCP file in ``folder`` (ODM's or OpenSfM's name), if there is one."""
+    return next((folder / n for n in GCP_FILE_NAMES if (folder / n).exists()), None)
 
 
 def flight_folder(data_dir: Path, flight_id: int) -> Path:

@@ -6,7 +6,8 @@ from fastapi import APIRouter, File, Form, UploadFile
 
 from api import calibration_service as service
 from api.deps import DbDep, QueueDep, SettingsDep
-from api.models import CalibrationOut, JobOut, MarksUpdate, MeasureRequest
+from api.models import JobOut, JobResultOut, MarksUpdate, MeasureRequest
+from api.photo_jobs import parse_options
 from api.stereo_service import measure_with_rig
 
 router = APIRouter(prefix="/api", tags=["calibration"])
@@ -20,11 +21,11 @@ async def create_calibration(db: DbDep, settings: SettingsDep, queue: QueueDep,
                              options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
     """Calibrate one camera: chessboard photos (corners found automatically), hand marks, or plumb lines."""
     return await service.create_calibration(db, settings, queue, "calibration", {"": files},
-                                            service.parse_options(options))
+                                            parse_options(options))
 
 
-@router.get("/calibrations/{job_id}", response_model=CalibrationOut)
-def get_calibration(job_id: int, db: DbDep, settings: SettingsDep) -> CalibrationOut:
+@router.get("/calibrations/{job_id}", response_model=JobResultOut)
+def get_calibration(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
     """The job and, once solved, the camera JSON, RMS, per-point reprojection errors and parameter sigmas."""
     return service.get_calibration(db, settings, job_id, "calibration")
 
@@ -42,11 +43,11 @@ async def create_stereo_rig(db: DbDep, settings: SettingsDep, queue: QueueDep,
                             options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
     """Calibrate a two-camera rig from paired chessboard photos: rotation, baseline, RMS."""
     return await service.create_calibration(db, settings, queue, "stereo_calibration",
-                                            {"left": left, "right": right}, service.parse_options(options))
+                                            {"left": left, "right": right}, parse_options(options))
 
 
-@router.get("/stereo-rigs/{job_id}", response_model=CalibrationOut)
-def get_stereo_rig(job_id: int, db: DbDep, settings: SettingsDep) -> CalibrationOut:
+@router.get("/stereo-rigs/{job_id}", response_model=JobResultOut)
+def get_stereo_rig(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
     return service.get_calibration(db, settings, job_id, "stereo_calibration")
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, File, Form, UploadFile
 
 from api import crack_survey_service as service
-from api.calibration_service import parse_options
 from api.deps import DbDep, QueueDep, SettingsDep
-from api.models import CrackSurveyOut, JobOut
+from api.models import JobOut, JobResultOut
+from api.photo_jobs import parse_options
 
 router = APIRouter(prefix="/api", tags=["crack survey"])
 
@@ -23,7 +23,7 @@ async def create_crack_survey(db: DbDep, settings: SettingsDep, queue: QueueDep,
     return await service.create_crack_survey(db, settings, queue, files, parse_options(options))
 
 
-@router.get("/crack-surveys/{job_id}", response_model=CrackSurveyOut)
-def get_crack_survey(job_id: int, db: DbDep, settings: SettingsDep) -> CrackSurveyOut:
+@router.get("/crack-surveys/{job_id}", response_model=JobResultOut)
+def get_crack_survey(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
     """The job and, once finished, ``report.json``: control point residuals, cracks per stage, comparisons."""
     return service.get_crack_survey(db, settings, job_id)

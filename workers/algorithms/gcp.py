@@ -196,6 +196,23 @@ def _number(obj: object, key: str, where: str) -> float:
     return float(value)
 
 
+GCP_FILE_NAMES = ("gcp_list.txt", "ground_control_points.json")  # ODM's, OpenSfM's
+
+
+def gcp_file_name(uploaded: str) -> str:
+    """The stored name of an uploaded GCP file: OpenSfM's for ``.json``, else ODM's."""
+    return GCP_FILE_NAMES[1] if uploaded.lower().endswith(".json") else GCP_FILE_NAMES[0]
+
+
+def parse_gcp_file(name: str, text: str, image_sizes: Mapping[str, tuple[int, int]],
+                   frame: LocalFrame) -> list[GroundControlPoint]:
+    """A GCP file by its stored name (``gcp_file_name``): ``parse_opensfm_gcps`` for the JSON, else
+    ``parse_gcp_list``; ``image_sizes`` (name -> (width, height) px) is what OpenSfM's projections refer to."""
+    if name == GCP_FILE_NAMES[1]:
+        return parse_opensfm_gcps(text, image_sizes, frame)
+    return parse_gcp_list(text, frame)
+
+
 def scale_observations(gcps: list[GroundControlPoint], factor: float) -> list[GroundControlPoint]:
     """The same GCPs with pixel observations for images resized by ``factor`` (OpenCV convention:
     pixel centres scale about the image corner, ``x' = (x + 0.5) * factor - 0.5``)."""

@@ -15,13 +15,7 @@ import numpy as np
 
 from workers.algorithms.camera import Camera
 from workers.algorithms.datum import Attitude, GpsFix
-from workers.algorithms.gcp import (
-    GroundControlPoint,
-    LocalFrame,
-    parse_gcp_list,
-    parse_opensfm_gcps,
-    scale_observations,
-)
+from workers.algorithms.gcp import GroundControlPoint, LocalFrame, parse_gcp_file, scale_observations
 from workers.algorithms.georef import lonlat_to_utm, utm_epsg
 from workers.algorithms.reconstruction import Reconstruction, ReconstructionOptions, reconstruct
 from workers.config import MosaicConfig
@@ -112,15 +106,14 @@ def _attitudes(frames: list[dict[str, Any]]) -> dict[int, Attitude] | None:
 
 def _gcps(ws: JobWorkspace, frames: list[dict[str, Any]], world: LocalFrame) -> list[GroundControlPoint]:
     """The job's GCPs with observations in working pixels (every frame of a job has one scale)."""
-    files = sorted(ws.gcp_dir().glob("*")) if ws.gcp_dir().is_dir() else []
-    if not files:
+    path = ws.gcp_file()
+    if path is None:
         return []
-    text = files[0].read_text(encoding="utf-8")
     sizes = {f["name"]: (f["orig_width"], f["orig_height"]) for f in frames}
     try:
-        gcps = parse_gcp_list(text, world) if files[0].suffix == ".txt" else parse_opensfm_gcps(text, sizes, world)
+        gcps = parse_gcp_file(path.name, path.read_text(encoding="utf-8"), sizes, world)
     except ValueError as exc:
-        raise PipelineError(f"{files[0].name}: {exc}") from None
+        raise PipelineError(f"{path.name}: {exc}") from None
     return scale_observations(gcps, frames[0]["scale"])
 
 

@@ -17,7 +17,7 @@ from workers.algorithms.camera import Camera
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
 from workers.stages.georeference import MAX_OUTPUT_PIXELS, map_grid, pixel_grid
-from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress, read_json, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
 
 MIN_KEPT_ROWS = 0.1  # a frame cut to less than this share of its rows (or columns) is left out
 
@@ -46,8 +46,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             continue
         x0, y0, x1, y1 = crop
         undistorted = cv2.remap(ws.load_working_image(k), maps[0], maps[1], cv2.INTER_LINEAR)[y0:y1, x0:x1]
-        with atomic_path(ws.ortho_image_file(k), suffix=".npy") as tmp:
-            np.save(tmp, np.ascontiguousarray(undistorted))
+        ws.save_ortho_image(k, undistorted)
         shift = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])  # cropped px -> full px
         homographies[k] = plane_from_ground @ np.linalg.inv(image_from_ground) @ shift
         sizes[k] = [x1 - x0, y1 - y0]
