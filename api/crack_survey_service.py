@@ -1,37 +1,47 @@
-"""Crack-survey jobs: photos of a planar specimen per load stage, with control points, kept in the job's folder.
+"""Crack-survey jobs: photos of a specimen (a plate or a mesh) per load stage, with control points, kept in
+the job's folder.
 
 The request is checked whole before anything is recorded: options (control points: at least four per
-photo, on the specimen, not on one line), the camera, and that the uploaded photos are exactly those the
-options name, each of the camera's size with its control points inside it.
+photo on a plate, six on a mesh, on the specimen, not on one line), the camera (given, or a finished
+calibration job's), the mesh (it parses; the control points lie on it), and that the uploaded photos are
+exactly those the options name, each of the camera's size with its control points inside it.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 from fastapi import UploadFile
 
-from api.db import Database
-from api.errors import InvalidInputError
+from api.db import Database, Job, JobStatus
+from api.errors import InvalidInputError, TooLargeError
 from api.job_service import validated_config
 from api.models import JobOut, JobResultOut
 from api.photo_jobs import job_of_kind, record_photo_job
 from api.queue import JobQueue
 from api.settings import Settings
+from api.uploads import display_name
 from workers.algorithms.camera import Camera
+from workers.algorithms.mesh import Mesh, distance_to_surface, plane_through, read_mesh
 from workers.workspace import job_workspace, read_json
 
 KIND = "crack_survey"
+ON_MESH_TOLERANCE = 0.005  # a mesh's control points must lie this close to its surface, times its diagonal
+ON_MESH_MIN_MM = 1.0  # ... or this close, mm, whichever is larger
 
 
 async def create_crack_survey(db: Database, settings: Settings, queue: JobQueue, files: list[UploadFile],
-                              options: dict[str, Any]) -> JobOut:
-    """Record and queue a crack survey over ``files``, the photos its ``options.stages`` name."""
-    config = validated_config(KIND, options)
+                              options: dict[str, Any], model: UploadFile | None = None) -> JobOut:
+    """Record and queue a crack survey over ``files``, the photos its ``options.stages`` name, and ``model``,
+    the specimen's mesh when ``options.specimen.mesh`` names one."""
+    config = validated_config(KIND, with_calibration_camera(db, settings, options))
     try:
         camera = Camera.from_json(config["camera"])
     except ValueError as exc:
         raise InvalidInputError(f"options.camera: {exc}") from None
+    attachments = await _mesh_attachment(config, model, settings.max_upload_bytes)
     photos = {p["image"]: p for stage in config["stages"] for p in stage["photos"]}
 
     def check(frames: list[dict[str, Any]]) -> None:
@@ -39,7 +49,64 @@ async def create_crack_survey(db: Database, settings: Settings, queue: JobQueue,
         for frame in frames:
             _check_photo(frame, photos[frame["name"]], camera)
 
-    return await record_photo_job(db, settings, queue, KIND, options, config, {"": files}, check)
+    return await record_photo_job(db, settings, queue, KIND, options, config, {"": files}, check, attachments)
+
+
+def with_calibration_camera(db: Database, settings: Settings, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` with ``camera`` taken from the finished calibration job ``options.calibration_job`` names."""
+    job_id = options.get("calibration_job")
+    if job_id is None:
+        return options
+    if "camera" in options:
+        raise InvalidInputError("options: give camera or calibration_job, not both")
+    if not isinstance(job_id, int) or isinstance(job_id, bool):
+        raise InvalidInputError("options.calibration_job: the id (an integer) of a calibration job")
+    with db.session() as s:
+        job = s.get(Job, job_id)
+        if job is None or job.kind != "calibration":
+            raise InvalidInputError(f"options.calibration_job: there is no calibration job {job_id}")
+        if job.status != JobStatus.succeeded.value:
+            raise InvalidInputError(f"options.calibration_job: calibration job {job_id} is {job.status}; "
+                                    "use one that has succeeded")
+    result = read_json(job_workspace(settings.data_dir, job_id).calibration_file())
+    return {**options, "camera": result["camera"]}
+
+
+async def _mesh_attachment(config: dict[str, Any], model: UploadFile | None, max_bytes: int) -> dict[str, bytes]:
+    """The uploaded mesh, read, parsed and checked against the control points: {path in the job: bytes}."""
+    name = config["specimen"]["mesh"]
+    if name is None:
+        if model is not None:
+            raise InvalidInputError("a model file was uploaded but options.specimen is a plate; "
+                                    "name the file in options.specimen.mesh to use it")
+        return {}
+    if model is None or display_name(model.filename) != name:
+        raise InvalidInputError(f"options.specimen.mesh names {name!r}: upload that file as the 'model' field")
+    data = await model.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise TooLargeError(f"{name}: file is larger than {max_bytes} bytes")
+    try:
+        mesh = read_mesh(data, name)
+        if config["specimen"]["plane"] is not None:
+            plane_through(mesh, np.array(config["specimen"]["plane"]))
+    except ValueError as exc:
+        raise InvalidInputError(f"options.specimen: {exc}") from None
+    _check_on_mesh(mesh, config["stages"])
+    return {str(Path("specimen") / f"model{Path(name).suffix.lower()}"): data}
+
+
+def _check_on_mesh(mesh: Mesh, stages: list[dict[str, Any]]) -> None:
+    """Every control point within ``ON_MESH_TOLERANCE`` of the model's surface."""
+    tolerance = max(ON_MESH_MIN_MM, ON_MESH_TOLERANCE * mesh.diagonal_mm)
+    for s, stage in enumerate(stages):
+        for photo in stage["photos"]:
+            model = np.array([p["model"] for p in photo["control_points"]], dtype=np.float64)
+            distances = distance_to_surface(mesh, model)
+            worst = int(np.argmax(distances))
+            if distances[worst] > tolerance:
+                raise InvalidInputError(
+                    f"stage {s} photo {photo['image']}: control point {worst} at model {model[worst].tolist()} is "
+                    f"{distances[worst]:.2f} mm from the model's surface (at most {tolerance:.2f} mm)")
 
 
 def _check_names(named: list[str], uploaded: list[str]) -> None:

@@ -24,7 +24,7 @@ from api.models import JobOut
 from api.queue import JobQueue
 from api.settings import Settings
 from api.uploads import StagedFile, stage_images, stored_name
-from workers.workspace import JobWorkspace, job_workspace
+from workers.workspace import JobWorkspace, atomic_path, job_workspace
 
 
 def parse_options(raw: str | None) -> dict[str, Any]:
@@ -42,11 +42,13 @@ def parse_options(raw: str | None) -> dict[str, Any]:
 
 async def record_photo_job(db: Database, settings: Settings, queue: JobQueue, kind: str, options: dict[str, Any],
                            config: dict[str, Any], groups: dict[str, list[UploadFile]],
-                           check: Callable[[list[dict[str, Any]]], None]) -> JobOut:
+                           check: Callable[[list[dict[str, Any]]], None],
+                           attachments: dict[str, bytes] | None = None) -> JobOut:
     """Stage and validate the photos, ``check`` their frames (raise ``InvalidInputError``), then record the
     job with its photos in its own folder and queue it; a failed request leaves nothing behind.
 
     Frames are ``{"name", "side", "pair", "width", "height"}``, and ``"path"`` once stored.
+    ``attachments`` are other files of the job, already checked: path inside its folder -> content.
     """
     staging = Path(settings.data_dir) / "incoming" / uuid.uuid4().hex
     try:
@@ -57,7 +59,7 @@ async def record_photo_job(db: Database, settings: Settings, queue: JobQueue, ki
             job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued.value)
             s.add(job)
             s.flush()
-            _write_workspace(job_workspace(settings.data_dir, job.id), staged, frames, config)
+            _write_workspace(job_workspace(settings.data_dir, job.id), staged, frames, config, attachments or {})
             job_id = job.id
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -77,7 +79,10 @@ def _frames(staged: dict[str, list[StagedFile]]) -> list[dict[str, Any]]:
 
 
 def _write_workspace(ws: JobWorkspace, staged: dict[str, list[StagedFile]], frames: list[dict[str, Any]],
-                     config: dict[str, Any]) -> None:
+                     config: dict[str, Any], attachments: dict[str, bytes]) -> None:
+    for relative, content in attachments.items():
+        with atomic_path(ws.root / relative) as tmp:
+            tmp.write_bytes(content)
     folder = ws.root / "images"
     folder.mkdir(parents=True, exist_ok=True)
     items = [item for side in staged.values() for item in side]

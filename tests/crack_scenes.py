@@ -1,8 +1,11 @@
-"""A cracked planar specimen photographed obliquely per load stage by a real (pinhole + Brown) camera.
+"""A cracked specimen (a plate or a curved panel) photographed obliquely per load stage by a real
+(pinhole + Brown) camera.
 
-Model frame: X right, Y down the plate, Z = 0 on its surface (Z grows into the plate), mm. The coating
-is a grain texture under a directional-light ramp; cracks are dark grooves of known width along known
-polylines. Every photo pixel is a ray of the true camera traced to the plane Z = 0 (as in
+Model frame: X right, Y down the plate, Z = 0 on its surface (Z grows into the plate), mm; a curved
+panel bulges from Z = 0 toward the cameras. Cracks and texture live in surface coordinates (s, y) mm,
+true lengths on the surface (the plate's X, Y; a panel's arc length and Y). The coating is a grain
+texture under a light ramp and a directional light; cracks are dark grooves of known width along known
+polylines. Every photo pixel is a ray of the true camera traced to the surface (as in
 ``terrain_scenes``); a crack darkens the pixel by the fraction of its footprint it covers, so thin
 cracks seen obliquely are rendered without aliasing. Stage 2 keeps the cracks of stage 1, grows one and
 adds new ones.
@@ -49,8 +52,10 @@ class CrackSurveyScene:
     width_mm: float
     height_mm: float
     camera: Camera
-    stages: list[list[TrueCrack]]  # the cracks present at each load stage
+    stages: list[list[TrueCrack]]  # the cracks present at each load stage, in surface (s, y) mm
     photos: list[Photo] = field(default_factory=list)
+    specimen: Plate | CurvedPanel | None = None
+    mesh_path: Path | None = None  # a curved panel's OBJ
 
     def options(self, mm_per_px: float, views: tuple[int, ...] | None = None) -> dict:
         """The crack-survey options a user would send for these photos (only ``views``, by index, if given)."""
@@ -58,8 +63,9 @@ class CrackSurveyScene:
                    "photos": [{"image": p.path.name, "control_points": p.control_points}
                               for p in self.photos if p.stage == s and (views is None or p.view in views)]}
                   for s in range(len(self.stages))]
-        return {"camera": self.camera.to_json(), "specimen": {"width_mm": self.width_mm, "height_mm": self.height_mm},
-                "stages": stages, "mm_per_px": mm_per_px}
+        specimen = ({"mesh": self.mesh_path.name} if self.mesh_path is not None
+                    else {"width_mm": self.width_mm, "height_mm": self.height_mm})
+        return {"camera": self.camera.to_json(), "specimen": specimen, "stages": stages, "mm_per_px": mm_per_px}
 
     def paths(self, views: tuple[int, ...] | None = None) -> list[Path]:
         return [p.path for p in self.photos if views is None or p.view in views]
@@ -177,15 +183,96 @@ def crack_field(cracks: list[TrueCrack], shape: tuple[int, int]) -> np.ndarray:
     return field
 
 
+@dataclass(frozen=True)
+class Plate:
+    """The flat specimen: surface (s, y) coordinates are its model (X, Y), Z = 0."""
+
+    width_mm: float
+    height_mm: float
+
+    def to_model(self, sy: np.ndarray) -> np.ndarray:
+        """(N, 2) surface (s, y) mm -> (N, 3) model mm."""
+        return np.column_stack([sy, np.zeros(len(sy))])
+
+    def trace(self, C: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where rays (N, 3) from ``C`` first meet the specimen: (N, 2) surface (s, y) mm, (N,) bool hit and
+        (N,) cosine between the surface's outward normal and a light from above the top right."""
+        t = -C[2] / rays[:, 2]
+        xy = C[:2] + t[:, None] * rays[:, :2]
+        hit = (t > 0) & (xy[:, 0] >= 0) & (xy[:, 0] <= self.width_mm) & (xy[:, 1] >= 0) & (xy[:, 1] <= self.height_mm)
+        return xy, hit, np.full(len(rays), -LIGHT[2])
+
+
+LIGHT = np.array([0.45, -0.35, -0.82]) / np.linalg.norm([0.45, -0.35, -0.82])  # toward the light, from the surface
+
+
+@dataclass(frozen=True)
+class CurvedPanel:
+    """A cylindrical panel bulging toward the cameras (-Z): arc length ``width_mm`` across (surface s), height
+    along its axis (model Y), radius ``radius_mm``. Its long edges lie on Z = 0 at X = 0 and X = chord.
+
+    The cylinder is developable, so surface (s, y) distances are true lengths on the panel.
+    """
+
+    width_mm: float
+    height_mm: float
+    radius_mm: float
+
+    @property
+    def half_angle(self) -> float:
+        return self.width_mm / (2 * self.radius_mm)
+
+    @property
+    def chord_mm(self) -> float:
+        return 2 * self.radius_mm * math.sin(self.half_angle)
+
+    @property
+    def axis(self) -> np.ndarray:
+        """(X, Z) of the cylinder's axis, mm."""
+        return np.array([self.chord_mm / 2, self.radius_mm * math.cos(self.half_angle)])
+
+    def to_model(self, sy: np.ndarray) -> np.ndarray:
+        phi = (np.asarray(sy)[:, 0] - self.width_mm / 2) / self.radius_mm
+        return np.column_stack([self.axis[0] + self.radius_mm * np.sin(phi), np.asarray(sy)[:, 1],
+                                self.axis[1] - self.radius_mm * np.cos(phi)])
+
+    def trace(self, C: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`Plate.trace`: the nearer intersection with the cylinder, on the panel."""
+        o = C[[0, 2]] - self.axis
+        d = rays[:, [0, 2]]
+        a, b, c = np.sum(d * d, axis=1), 2 * d @ o, o @ o - self.radius_mm**2
+        disc = b * b - 4 * a * c
+        t = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+        P = C + t[:, None] * rays
+        phi = np.arctan2(P[:, 0] - self.axis[0], self.axis[1] - P[:, 2])
+        sy = np.column_stack([self.radius_mm * phi + self.width_mm / 2, P[:, 1]])
+        hit = (disc > 0) & (t > 0) & (np.abs(phi) <= self.half_angle) & (sy[:, 1] >= 0) & (sy[:, 1] <= self.height_mm)
+        normal = np.column_stack([np.sin(phi), np.zeros_like(phi), -np.cos(phi)])
+        return sy, hit, normal @ LIGHT
+
+    def write_mesh(self, path: Path, n_arc: int = 64, n_y: int = 12) -> None:
+        """The panel as an OBJ of (n_arc x n_y) quads split in triangles, model mm."""
+        s, y = np.meshgrid(np.linspace(0, self.width_mm, n_arc + 1), np.linspace(0, self.height_mm, n_y + 1))
+        vertices = self.to_model(np.column_stack([s.ravel(), y.ravel()]))
+        k = np.arange((n_y + 1) * (n_arc + 1)).reshape(n_y + 1, n_arc + 1)
+        a, b, c, d = k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel()
+        faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+        lines = [f"v {x:.6f} {yy:.6f} {z:.6f}" for x, yy, z in vertices] + [f"f {i + 1} {j + 1} {m + 1}"
+                                                                             for i, j, m in faces]
+        path.write_text("# curved panel, mm\n" + "\n".join(lines) + "\n")
+
+
 def render_photo(camera: Camera, R: np.ndarray, C: np.ndarray, coating: np.ndarray, field_mm: np.ndarray,
-                 width_mm: float, height_mm: float, rng: np.random.Generator) -> np.ndarray:
-    """(H, W) uint8: the plate (coating under a light ramp, cracks) on a dark background, with noise."""
+                 specimen: Plate | CurvedPanel, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) uint8: the specimen (coating under a light ramp and a directional light, cracks) on a dark
+    background, with noise."""
     u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
     rays = camera.unproject(np.column_stack([u.ravel(), v.ravel()])) @ R  # R.T @ ray per row
-    t = -C[2] / rays[:, 2]
-    xy = (C[:2] + t[:, None] * rays[:, :2]).reshape(camera.height, camera.width, 2)
-    on_plate = (t.reshape(xy.shape[:2]) > 0) & (xy[..., 0] >= 0) & (xy[..., 0] <= width_mm) \
-        & (xy[..., 1] >= 0) & (xy[..., 1] <= height_mm)
+    sy, hit, lit = specimen.trace(C, rays)
+    xy = sy.reshape(camera.height, camera.width, 2)
+    on_plate = hit.reshape(xy.shape[:2])
+    width_mm, height_mm = specimen.width_mm, specimen.height_mm
+    shade = (0.55 + 0.45 * np.clip(lit, 0, 1) / -LIGHT[2]).reshape(xy.shape[:2])  # 1 where facing -Z
     col, row = (xy[..., 0] / TEXTURE_MM_PER_PX).astype(np.float32), (xy[..., 1] / TEXTURE_MM_PER_PX).astype(np.float32)
     albedo = cv2.remap(coating, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     inside = cv2.remap(field_mm, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
@@ -194,33 +281,41 @@ def render_photo(camera: Camera, R: np.ndarray, C: np.ndarray, coating: np.ndarr
     footprint = np.sqrt(np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]))
     cover = np.clip(0.5 + inside / footprint, 0.0, 1.0)
     light = 0.75 + 0.5 * (0.6 * xy[..., 0] / width_mm + 0.4 * (1 - xy[..., 1] / height_mm))  # from the top right
-    image = np.where(on_plate, albedo * light * (1 - 0.5 * cover), 45.0) + rng.normal(0, 3.0, on_plate.shape)
+    image = np.where(on_plate, albedo * light * shade * (1 - 0.5 * cover), 45.0) + rng.normal(0, 3.0, on_plate.shape)
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
 def make_crack_survey(out_dir: Path, views: list[tuple[float, float]], seed: int = 0, width_mm: float = 200.0,
-                      height_mm: float = 150.0, frame_size: tuple[int, int] = (900, 700)) -> CrackSurveyScene:
+                      height_mm: float = 150.0, frame_size: tuple[int, int] = (900, 700),
+                      panel_radius_mm: float | None = None) -> CrackSurveyScene:
     """Render two load stages, each photographed from ``views`` (elevation, azimuth) degrees, to PNGs.
 
-    The camera is re-set between stages (a few mm and a degree off); control points are the plate's corners
-    and ``MARKS_MM``, projected through the true camera with 0.3 px noise.
+    The specimen is a plate, or with ``panel_radius_mm`` a :class:`CurvedPanel` of arc width ``width_mm``
+    whose mesh is written to ``out_dir / "panel.obj"`` (the scene's ``mesh_path``). The camera is re-set
+    between stages (a few mm and a degree off); control points are the specimen's corners and
+    ``MARKS_MM`` (in surface coordinates), projected through the true camera with 0.3 px noise.
     """
     rng = np.random.default_rng(seed)
     w, h = frame_size
     camera = Camera(w, h, 1.05 * w, 1.05 * w, w / 2 + 6.0, h / 2 - 4.0, k1=-0.09, k2=0.04, t1=3e-4, t2=-2e-4)
-    scene = CrackSurveyScene(width_mm, height_mm, camera, make_stages(seed, width_mm, height_mm))
+    specimen = Plate(width_mm, height_mm) if panel_radius_mm is None else CurvedPanel(width_mm, height_mm,
+                                                                                         panel_radius_mm)
+    scene = CrackSurveyScene(width_mm, height_mm, camera, make_stages(seed, width_mm, height_mm), specimen=specimen)
     shape = (int(round(height_mm / TEXTURE_MM_PER_PX)) + 1, int(round(width_mm / TEXTURE_MM_PER_PX)) + 1)
     coating = _coating(rng, shape)
-    model = np.array([[0, 0, 0], [width_mm, 0, 0], [0, height_mm, 0], [width_mm, height_mm, 0],
-                      *[[x, y, 0] for x, y in MARKS_MM]], float)
+    model = specimen.to_model(np.array([[0, 0], [width_mm, 0], [0, height_mm], [width_mm, height_mm], *MARKS_MM]))
     out_dir.mkdir(parents=True, exist_ok=True)
+    if isinstance(specimen, CurvedPanel):
+        scene.mesh_path = out_dir / "panel.obj"
+        specimen.write_mesh(scene.mesh_path)
+    extent = specimen.chord_mm if isinstance(specimen, CurvedPanel) else width_mm
     for s, cracks in enumerate(scene.stages):
         field_mm = crack_field(cracks, shape)
         for k, (elevation, azimuth) in enumerate(views):
-            R, C = oblique_pose(camera, width_mm, height_mm, elevation + rng.uniform(-1, 1),
+            R, C = oblique_pose(camera, extent, height_mm, elevation + rng.uniform(-1, 1),
                                 azimuth + rng.uniform(-2, 2))
             C = C + rng.uniform(-3, 3, 3)
-            image = render_photo(camera, R, C, coating, field_mm, width_mm, height_mm, rng)
+            image = render_photo(camera, R, C, coating, field_mm, specimen, rng)
             path = out_dir / f"stage{s + 1}_view{k + 1}_{int(elevation)}deg.png"
             cv2.imwrite(str(path), image)
             pixels = camera.project((model - C) @ R.T) + rng.normal(0, 0.3, (len(model), 2))

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 DistortionTerm = Literal["k1", "k2", "k3", "t1", "t2"]
 Convention = Literal["distort_ideal", "restore_ideal"]
@@ -112,12 +112,27 @@ def _check_pattern(pattern: tuple[int, int]) -> tuple[int, int]:
 
 
 class Specimen(BaseModel):
-    """The planar specimen: model frame X right, Y down the plate, Z = 0 on its surface, mm."""
+    """The specimen's model: a plate (X right, Y down, Z = 0 on its surface, mm) or a triangle mesh in mm."""
 
     model_config = ConfigDict(extra="forbid")
 
-    width_mm: float = Field(gt=0.0, le=100000.0)  # extent along X, mm
-    height_mm: float = Field(gt=0.0, le=100000.0)  # extent along Y, mm
+    width_mm: float | None = Field(None, gt=0.0, le=100000.0)  # plate: extent along X, mm
+    height_mm: float | None = Field(None, gt=0.0, le=100000.0)  # plate: extent along Y, mm
+    mesh: str | None = Field(None, min_length=1)  # mesh: the uploaded model file's name (OBJ, PLY or STL, mm)
+    # mesh: the plane it is rectified onto, as three model points (origin, toward +x, on the +y side);
+    # None: the surface's best-fit plane
+    plane: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    @model_validator(mode="after")
+    def _one_model(self) -> Specimen:
+        plate = self.width_mm is not None and self.height_mm is not None
+        if self.mesh is None and not plate:
+            raise ValueError("give width_mm and height_mm for a plate, or mesh (an uploaded model file)")
+        if self.mesh is not None and (self.width_mm is not None or self.height_mm is not None):
+            raise ValueError("a mesh specimen takes its size from the model: leave out width_mm and height_mm")
+        if self.mesh is None and self.plane is not None:
+            raise ValueError("plane applies to a mesh specimen only")
+        return self
 
 
 class ControlPoint(BaseModel):
@@ -154,6 +169,9 @@ class CrackSurveyConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     camera: dict[str, Any]  # the calibrated camera (camera JSON) that took every photo
+    # the calibration job the camera came from: a request may name it instead of giving camera, and the
+    # API copies that job's camera into camera, so the survey keeps the camera it was measured with
+    calibration_job: int | None = Field(None, ge=1)
     specimen: Specimen
     stages: list[LoadStage] = Field(min_length=1)  # in load order; each stage is compared with the one before
     mm_per_px: float = Field(0.2, ge=0.005, le=50.0)  # resolution of the rectified specimen images, mm per px
@@ -191,30 +209,46 @@ class CrackSurveyConfig(BaseModel):
 
 
 MIN_CONTROL_POINTS = 4  # a plane-to-photo mapping has 8 degrees of freedom
+# a pose from points on a curved surface: 6 unknowns, and points off one plane to pin the depth
+MIN_MESH_CONTROL_POINTS = 6
 
 
 def _check_control_points(where: str, points: list[ControlPoint], specimen: Specimen) -> None:
-    """At least four points, on the specimen's surface and not all on one line."""
-    if len(points) < MIN_CONTROL_POINTS:
-        raise ValueError(f"{where}: {len(points)} control point(s); at least {MIN_CONTROL_POINTS} are needed")
-    tolerance = 1e-6 * max(specimen.width_mm, specimen.height_mm)
+    """Enough points (4 on a plate, 6 on a mesh), on a plate inside it, and not all on one line.
+
+    Whether a mesh's points lie on its surface is checked where the mesh is read (the API)."""
+    needed = MIN_CONTROL_POINTS if specimen.mesh is None else MIN_MESH_CONTROL_POINTS
+    if len(points) < needed:
+        raise ValueError(f"{where}: {len(points)} control point(s); at least {needed} are needed")
+    if specimen.width_mm is not None and specimen.height_mm is not None:
+        _check_on_plate(where, points, specimen.width_mm, specimen.height_mm)
+    if _collinear([p.model for p in points]):
+        raise ValueError(f"{where}: the control points lie on one line; they must span the specimen's surface")
+
+
+def _check_on_plate(where: str, points: list[ControlPoint], width_mm: float, height_mm: float) -> None:
+    tolerance = 1e-6 * max(width_mm, height_mm)
     for k, point in enumerate(points):
         x, y, z = point.model
-        if not (-tolerance <= x <= specimen.width_mm + tolerance and -tolerance <= y <= specimen.height_mm + tolerance
+        if not (-tolerance <= x <= width_mm + tolerance and -tolerance <= y <= height_mm + tolerance
                 and abs(z) <= tolerance):
             raise ValueError(f"{where}: control point {k} at model {list(point.model)} is outside the specimen "
-                             f"(0..{specimen.width_mm} x 0..{specimen.height_mm} mm, Z = 0)")
-    # collinear when the second moment of the model points has (almost) no spread across its main axis
-    xs, ys = [p.model[0] for p in points], [p.model[1] for p in points]
-    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
-    sxx = sum((x - mx) ** 2 for x in xs) / len(xs)
-    syy = sum((y - my) ** 2 for y in ys) / len(ys)
-    sxy = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / len(xs)
-    half_trace, det = (sxx + syy) / 2, sxx * syy - sxy * sxy
-    minor = half_trace - math.sqrt(max(half_trace**2 - det, 0.0))
-    major = 2 * half_trace - minor
-    if minor <= (1e-3) ** 2 * major:  # across-axis spread below 0.1% of the along-axis spread
-        raise ValueError(f"{where}: the control points lie on one line; they must span the specimen's plane")
+                             f"(0..{width_mm} x 0..{height_mm} mm, Z = 0)")
+
+
+def _collinear(model: list[tuple[float, float, float]]) -> bool:
+    """True when no point is farther than 0.1% of their span from the line through the two farthest apart.
+
+    (Plain Python: this module imports only pydantic.)
+    """
+    far = max(((a, b) for a in model for b in model), key=lambda ab: math.dist(*ab))
+    span = math.dist(*far)
+    if span == 0.0:
+        return True
+    direction = [(q - p) / span for p, q in zip(*far, strict=True)]
+    off = max(math.dist(p, [f + t * d for f, d in zip(far[0], direction, strict=True)])
+              for p in model for t in [sum((pi - fi) * d for pi, fi, d in zip(p, far[0], direction, strict=True))])
+    return off <= 1e-3 * span
 
 
 CalibrationConfig.model_rebuild()

@@ -21,11 +21,12 @@ BlockWriter = Callable[[Window, np.ndarray, np.ndarray], None]
 
 
 @contextmanager
-def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
+def open_block_writer(path: Path, width: int, height: int, crs: int | str | None,
                       transform: list[float] | None) -> Iterator[BlockWriter]:
     """A 3-band uint8 tiled GeoTIFF with an internal mask; yields ``write(window, rgb, mask)``.
 
-    ``transform`` (GDAL's six coefficients) places the pixels; ``epsg`` names their CRS, None for none.
+    ``transform`` (rasterio's affine a, b, c, d, e, f) places the pixels; ``crs`` names their CRS: an EPSG
+    code, a WKT string (a local engineering frame such as a specimen's mm), or None for none.
 
     ``rgb`` is (h, w, 3) uint8 in R, G, B order and ``mask`` (h, w) bool, True where there is data.
     """
@@ -34,10 +35,10 @@ def open_block_writer(path: Path, width: int, height: int, epsg: int | None,
         "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate",
         "photometric": "RGB", "BIGTIFF": "IF_SAFER", "num_threads": "ALL_CPUS",
     }
-    if transform is not None:  # without an EPSG code: a local engineering frame (a specimen's mm), no CRS
+    if transform is not None:
         profile["transform"] = Affine(*transform)
-        if epsg is not None:
-            profile["crs"] = CRS.from_epsg(epsg)
+        if crs is not None:
+            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
         def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
             dst.write(np.moveaxis(rgb, 2, 0), window=window)

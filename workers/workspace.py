@@ -189,6 +189,22 @@ class JobWorkspace:
         """Each photo's pose from its control points and their residuals (``orient_camera``)."""
         return self.root / "orientation.json"
 
+    def specimen_model_file(self, name: str) -> Path:
+        """The uploaded mesh of the specimen, stored under a fixed name with its format's suffix."""
+        return self.root / "specimen" / f"model{Path(name).suffix.lower()}"
+
+    def surface_file(self) -> Path:
+        """The rectification plane and the specimen's heights above it (``rectify_specimen``), ``.npz``."""
+        return self.root / "rectified" / "surface.npz"
+
+    def save_surface(self, origin: np.ndarray, axes: np.ndarray, height: np.ndarray, mm_per_px: float) -> None:
+        _save_npz(self.surface_file(), origin=origin, axes=axes, height=height, mm_per_px=np.array(mm_per_px))
+
+    def load_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The rectification plane (origin (3,), axes (3, 3) rows U, V, N), heights (H, W) mm, mm per px."""
+        with np.load(self.surface_file()) as data:
+            return data["origin"], data["axes"], data["height"], float(data["mm_per_px"])
+
     def rectified_file(self, stage: int) -> Path:
         """Load stage ``stage``'s photos rectified onto the specimen: image and coverage mask (``.npz``)."""
         return self.root / "rectified" / f"stage_{stage:02d}.npz"

@@ -2,7 +2,7 @@
 
 The exceptions are NumPy-only geometry (the camera model and stereo triangulation), which the API uses
 to answer a measurement with a calibrated rig at once instead of queueing a job for milliseconds of
-arithmetic, and the GCP parsers (NumPy and pyproj), which check an upload before it is stored.
+arithmetic, and the GCP and mesh parsers (NumPy and pyproj), which check an upload before it is stored.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import subprocess
 import sys
 
 NUMPY_ONLY = ["workers.algorithms", "workers.algorithms.camera", "workers.algorithms.stereo",
-              "workers.algorithms.gcp", "workers.algorithms.georef"]
+              "workers.algorithms.gcp", "workers.algorithms.georef", "workers.algorithms.mesh"]
 
 
 def test_the_api_never_imports_the_stage_code() -> None:

@@ -1,4 +1,4 @@
-"""Crack surveys of a planar specimen through the API, their stages run in-process, against a rendered
+"""Crack surveys of a plate through the API, their stages run in-process, against a rendered
 specimen whose cracks are known (``tests/crack_scenes.py``): counts, lengths, positions and the comparison
 of the two load stages, per viewing angle; and the requests refused with 422."""
 
@@ -109,8 +109,12 @@ def test_stage_of_three_photos_is_composed_and_its_outputs_written(client: TestC
             "stage_00_overlay.png", "stage_01_overlay.png"} <= outputs
     cog = client.get(f"/api/jobs/{result['job_id']}/outputs/stage_01_rectified.tif")
     with rasterio.MemoryFile(cog.content) as memory, memory.open() as dataset:
-        assert (dataset.width, dataset.height, dataset.count, dataset.crs) == (801, 601, 3, None)
+        assert (dataset.width, dataset.height, dataset.count) == (801, 601, 3)
         assert dataset.res == (MM_PER_PX, MM_PER_PX) and dataset.overviews(1)
+        # a local engineering frame in mm: neither geographic nor projected, units of 0.001 m
+        crs = dataset.crs
+        assert not crs.is_geographic and not crs.is_projected and "specimen" in crs.to_wkt()
+        assert crs.units_factor[1] == 0.001
     geojson = client.get(f"/api/jobs/{result['job_id']}/outputs/cracks.geojson").json()
     assert len(geojson["features"]) == sum(s["count"] for s in result["stages"])
     statuses = [f["properties"]["status"] for f in geojson["features"] if f["properties"]["stage"] == 1]

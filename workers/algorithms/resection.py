@@ -1,9 +1,10 @@
-"""A calibrated camera's pose from control points on a plane, and orthographic rectification onto that plane.
+"""A calibrated camera's pose from control points on a plate or on a curved specimen.
 
-Model frame: the plane is Z = 0, X and Y in mm (a specimen: X right, Y down the plate). Poses follow the
-project's convention ``X_cam = R (X - C)`` (see ``camera.py``).
+Model frame: mm; a plate is Z = 0 with X right and Y down. Poses follow the project's convention
+``X_cam = R (X - C)`` (see ``camera.py``).
 
-The pose is first found by ``cv2.solvePnP`` (IPPE, Collins & Bartoli, IJCV 2014) on the undistorted,
+The pose is first found by ``cv2.solvePnP`` (IPPE for a plate, Collins & Bartoli, IJCV 2014; SQPnP for
+points in space) on the undistorted,
 normalised control points, then refined by Levenberg-Marquardt over the six pose parameters on the
 pixel residuals of the full camera model (``scipy.optimize.least_squares``), so that the distortion
 is honoured in either convention.
@@ -17,7 +18,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from workers.algorithms.camera import Camera, rotation_from_vector, vector_from_rotation, world_to_camera
+from workers.algorithms.camera import Camera, rotation_from_vector, vector_from_rotation
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,9 @@ class Resection:
     R: np.ndarray  # (3, 3) world -> camera rotation
     C: np.ndarray  # (3,) projection centre, model mm
     residuals_px: np.ndarray  # (N, 2) projected minus marked pixel, px
-    residuals_mm: np.ndarray  # (N, 2) marked pixel's ray on the plane minus the model point, (X, Y) mm
+    # (N, 2) on a plate: the marked pixel's ray on the plane minus the model point, (X, Y) mm;
+    # (N, 3) otherwise: the ray's nearest point to the model point minus the model point, (X, Y, Z) mm
+    residuals_mm: np.ndarray
 
     @property
     def rms_px(self) -> float:
@@ -55,8 +58,34 @@ def resect_plane(camera: Camera, model: np.ndarray, pixels: np.ndarray) -> Resec
     pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
     if len(model) < 4 or len(model) != len(pixels):
         raise ValueError(f"need at least 4 model/pixel pairs of equal count, got {len(model)} and {len(pixels)}")
+    R, C, residuals_px = _refined_pose(camera, model, pixels, cv2.SOLVEPNP_IPPE)
+    on_plane = plane_points(camera, R, C, pixels)
+    return Resection(R, C, residuals_px, on_plane - model[:, :2])
+
+
+def resect_points(camera: Camera, model: np.ndarray, pixels: np.ndarray) -> Resection:
+    """The pose of ``camera`` from control points anywhere in space (on a curved specimen).
+
+    As :func:`resect_plane`, with the start from SQPnP (Terzakis & Lourakis, ECCV 2020), which needs no
+    plane. ``residuals_mm`` is (N, 3): from the model point to the nearest point of the marked pixel's ray.
+    """
+    model = np.asarray(model, dtype=np.float64).reshape(-1, 3)
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    if len(model) < 4 or len(model) != len(pixels):
+        raise ValueError(f"need at least 4 model/pixel pairs of equal count, got {len(model)} and {len(pixels)}")
+    R, C, residuals_px = _refined_pose(camera, model, pixels, cv2.SOLVEPNP_SQPNP)
+    rays = camera.unproject(pixels) @ R  # R.T @ ray per row: unit rays in the model frame
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    along = np.einsum("ij,ij->i", model - C, rays)
+    return Resection(R, C, residuals_px, C + along[:, None] * rays - model)
+
+
+def _refined_pose(camera: Camera, model: np.ndarray, pixels: np.ndarray,
+                  method: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A first pose by ``cv2.solvePnP(method)`` on normalised points, refined by LM on the pixel residuals
+    of the full camera model. Returns R, C and the (N, 2) residuals, px."""
     ideal = camera.pixel_to_normalised(pixels)
-    ok, rvec, tvec = cv2.solvePnP(model, ideal.reshape(-1, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    ok, rvec, tvec = cv2.solvePnP(model, ideal.reshape(-1, 1, 2), np.eye(3), None, flags=method)
     if not ok:
         raise ValueError("solvePnP found no pose for these control points")
 
@@ -66,9 +95,7 @@ def resect_plane(camera: Camera, model: np.ndarray, pixels: np.ndarray) -> Resec
 
     fit = least_squares(residuals, np.concatenate([rvec.ravel(), tvec.ravel()]), method="lm", x_scale="jac")
     R = rotation_from_vector(fit.x[:3])
-    C = -R.T @ fit.x[3:]
-    on_plane = plane_points(camera, R, C, pixels)
-    return Resection(R, C, fit.fun.reshape(-1, 2), on_plane - model[:, :2])
+    return R, -R.T @ fit.x[3:], fit.fun.reshape(-1, 2)
 
 
 def plane_points(camera: Camera, R: np.ndarray, C: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -78,40 +105,6 @@ def plane_points(camera: Camera, R: np.ndarray, C: np.ndarray, pixels: np.ndarra
         t = -C[2] / rays[:, 2]
     t = np.where(t > 0, t, np.nan)
     return C[:2] + t[:, None] * rays[:, :2]
-
-
-def rectification_maps(camera: Camera, R: np.ndarray, C: np.ndarray, shape: tuple[int, int],
-                       mm_per_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``cv2.remap`` maps that render a photo onto the plane, and how well the photo sees each point.
-
-    Output pixel (col, row) is the model point (col * mm_per_px, row * mm_per_px, 0): its centre, as in
-    ``crack_geometry``.
-
-    Parameters
-    ----------
-    camera, R, C : the oriented camera that took the photo.
-    shape : (rows, cols) of the output raster.
-    mm_per_px : output resolution, mm per pixel.
-
-    Returns
-    -------
-    map_x, map_y : (rows, cols) float32 photo pixel (x, y) of each output pixel, with distortion.
-    density : (rows, cols) float32 photo pixels per mm^2 of plane at each output pixel
-        (``f^2 cos(incidence) / distance^2``); 0 where the photo does not see the point.
-    """
-    rows, cols = shape
-    X, Y = np.meshgrid(np.arange(cols, dtype=np.float64) * mm_per_px, np.arange(rows, dtype=np.float64) * mm_per_px)
-    points = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
-    cam = world_to_camera(points, R, C)
-    front = cam[:, 2] > 1e-9
-    uv = np.full((len(points), 2), -1e6)
-    uv[front] = camera.project(cam[front])
-    seen = front & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1)
-    distance = np.linalg.norm(points - C, axis=1)
-    cos_incidence = np.abs(C[2]) / distance  # the plane's normal is Z
-    density = np.where(seen, camera.fx * camera.fy * cos_incidence / distance**2, 0.0)
-    return (uv[:, 0].reshape(shape).astype(np.float32), uv[:, 1].reshape(shape).astype(np.float32),
-            density.reshape(shape).astype(np.float32))
 
 
 def pose_json(R: np.ndarray, C: np.ndarray) -> dict[str, list[float]]:

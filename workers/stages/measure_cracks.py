@@ -1,22 +1,28 @@
-"""Stage ``measure_cracks``: every crack of every load stage as polylines in specimen mm, length and width."""
+"""Stage ``measure_cracks``: every crack of every load stage as polylines in the rectified plane's mm, its
+length along the specimen's surface and its width."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from workers.algorithms.crack_geometry import Crack, measure_cracks, summarise_cracks
+from workers.algorithms.crack_geometry import Crack, measure_cracks, path_length, summarise_cracks
+from workers.algorithms.specimen_surface import Surface
 from workers.config import CrackSurveyConfig
+from workers.stages.rectify_specimen import load_surface
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
 
 
 def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``cracks/stage_NN.json`` per load stage: its cracks and their totals."""
     counts, totals = [], []
+    surface = load_surface(ws)
     for s in range(len(cfg.stages)):
         progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
-        cracks = measure_cracks(ws.load_crack_mask(s), cfg.mm_per_px, min_length_mm=cfg.min_crack_length_mm)
+        cracks = [along_surface(c, surface) for c in
+                  measure_cracks(ws.load_crack_mask(s), cfg.mm_per_px, min_length_mm=cfg.min_crack_length_mm)]
         summary = summarise_cracks(cracks)
         write_json(ws.measured_cracks_file(s), {
             "cracks": [crack_to_json(c) for c in cracks],
@@ -30,6 +36,12 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         totals.append(round(summary.total_length_mm, 2))
     progress(1.0, f"{sum(counts)} crack(s)")
     return {"cracks": counts, "total_length_mm": totals}
+
+
+def along_surface(crack: Crack, surface: Surface) -> Crack:
+    """``crack`` (measured on the plane) with its length measured along the specimen's surface: each path
+    lifted to its height above the plane (no change on a plate)."""
+    return replace(crack, length_mm=sum(path_length(surface.lift(p)) for p in crack.paths_mm))
 
 
 def crack_to_json(crack: Crack) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Stage ``orient_camera``: each photo's pose from its control points (space resection on the specimen plane)."""
+"""Stage ``orient_camera``: each photo's pose from its control points (space resection on the plate or mesh)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from workers.algorithms.camera import Camera
-from workers.algorithms.resection import Resection, pose_json, resect_plane
+from workers.algorithms.resection import Resection, pose_json, resect_plane, resect_points
 from workers.config import CrackSurveyConfig, SurveyPhoto
 from workers.pipeline import PipelineError
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
@@ -31,7 +31,7 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         model = np.array([p.model for p in photo.control_points], dtype=np.float64)
         pixels = np.array([p.pixel for p in photo.control_points], dtype=np.float64)
         try:
-            result = resect_plane(camera, model, pixels)
+            result = (resect_plane if cfg.specimen.mesh is None else resect_points)(camera, model, pixels)
         except ValueError as exc:
             raise PipelineError(f"{photo.image}: {exc}") from None
         _check_fit(photo, result, cfg.max_rms_px)
@@ -57,7 +57,8 @@ def _check_fit(photo: SurveyPhoto, result: Resection, max_rms_px: float) -> None
 def _photo_entry(stage: int, photo: SurveyPhoto, result: Resection) -> dict[str, Any]:
     points = [{"index": k, "pixel": list(p.pixel), "model": list(p.model),
                "residual_px": result.residuals_px[k].tolist(), "error_px": float(np.hypot(*result.residuals_px[k])),
-               "residual_mm": result.residuals_mm[k].tolist(), "error_mm": float(np.hypot(*result.residuals_mm[k]))}
+               "residual_mm": result.residuals_mm[k].tolist(),
+               "error_mm": float(np.linalg.norm(result.residuals_mm[k]))}
               for k, p in enumerate(photo.control_points)]
     return {"image": photo.image, "stage": stage, **pose_json(result.R, result.C),
             "rms_px": result.rms_px, "rms_mm": result.rms_mm, "points": points}

@@ -1,8 +1,9 @@
 """Stage ``write_crack_report``: the crack survey's outputs.
 
-Per load stage a rectified COG (no CRS: a local engineering frame in mm, pixel (col, row) centred on the
-specimen point (col, row) * mm_per_px, so Y runs down the plate as in the model frame) and an overlay PNG;
-for all stages ``cracks.geojson`` (polylines in specimen mm), ``cracks.csv`` and ``report.json``.
+Per load stage a rectified COG (a local engineering CRS in mm on the rectification plane, pixel (col, row)
+centred on the plane point (col, row) * mm_per_px, so y runs down the specimen as in a plate's model frame)
+and an overlay PNG; for all stages ``cracks.geojson`` (3D polylines in the specimen model's mm),
+``cracks.csv`` and ``report.json``.
 """
 
 from __future__ import annotations
@@ -15,11 +16,17 @@ import cv2
 import numpy as np
 from rasterio.windows import Window
 
+from workers.algorithms.specimen_surface import Surface
 from workers.config import CrackSurveyConfig
 from workers.raster_io import open_block_writer, translate_to_cog
 from workers.stages.measure_cracks import load_stage_cracks
+from workers.stages.rectify_specimen import load_surface
 from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress, read_json, write_json
 
+# A local engineering frame in mm (no datum on Earth): GeoTIFF keeps it as a user-defined projected CS in
+# millimetres; raster Y grows down the specimen with the rows (a positive pixel height in the transform).
+SPECIMEN_CRS = ('LOCAL_CS["specimen rectification plane (mm)",LOCAL_DATUM["specimen",32767],'
+                'UNIT["millimetre",0.001],AXIS["x",EAST],AXIS["y",SOUTH]]')
 STATUS_BGR = {"first": (0, 200, 255), "new": (0, 0, 255), "grown": (255, 0, 255), "unchanged": (0, 200, 0)}
 CSV_FIELDS = ("stage", "stage_label", "load", "id", "length_mm", "mean_width_mm", "max_width_mm", "orientation_deg",
               "status", "growth_mm", "x_min_mm", "y_min_mm", "x_max_mm", "y_max_mm")
@@ -40,10 +47,13 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
                        **summary, "rectified": ws.stage_cog_file(s).name, "overlay": ws.stage_overlay_file(s).name,
                        "cracks": cracks})
         rows += cracks
-    write_json(ws.cracks_geojson_file(), _geojson(rows))
+    surface = load_surface(ws)
+    write_json(ws.cracks_geojson_file(), _geojson(rows, surface))
     _write_csv(ws, rows)
     report = {"kind": "crack_survey", "mm_per_px": cfg.mm_per_px, "specimen": cfg.specimen.model_dump(),
-              "frame": "specimen mm: X right, Y down the plate, origin at its corner",
+              "frame": ("paths_mm and bbox_mm: (x, y) mm on the rectification plane, x right, y down, raster pixel "
+                        "(col, row) centred on (x, y) / mm_per_px; cracks.geojson: specimen model (X, Y, Z) mm"),
+              "plane": surface.frame.to_json(),
               "photos": read_json(ws.orientation_file())["photos"], "stages": stages,
               "comparisons": [{k: v for k, v in p.items() if k != "cracks"} for p in pairs]}
     write_json(ws.report_file(), report)
@@ -71,7 +81,7 @@ def _write_cog(ws: JobWorkspace, s: int, image: np.ndarray, mask: np.ndarray, cf
     step = cfg.mm_per_px
     tmp = ws.root / f"stage_{s:02d}.tmp.tif"
     height, width = mask.shape
-    with open_block_writer(tmp, width, height, None, [step, 0.0, -step / 2, 0.0, step, -step / 2]) as write:
+    with open_block_writer(tmp, width, height, SPECIMEN_CRS, [step, 0.0, -step / 2, 0.0, step, -step / 2]) as write:
         write(Window(0, 0, width, height), cv2.cvtColor(image, cv2.COLOR_BGR2RGB), mask)
     translate_to_cog(tmp, ws.stage_cog_file(s), cfg.cog_compression)
     tmp.unlink(missing_ok=True)
@@ -91,11 +101,15 @@ def _write_overlay(ws: JobWorkspace, s: int, image: np.ndarray, cracks: list[dic
         tmp.write_bytes(png.tobytes())
 
 
-def _geojson(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    features = [{"type": "Feature", "geometry": {"type": "MultiLineString", "coordinates": row["paths_mm"]},
+def _geojson(rows: list[dict[str, Any]], surface: Surface) -> dict[str, Any]:
+    """The cracks as 3D lines in the specimen model's own coordinates (X, Y, Z mm; Z = 0 on a plate)."""
+    def lines(paths: list[list[list[float]]]) -> list[list[list[float]]]:
+        return [np.round(surface.lift(np.array(p)), 4).tolist() for p in paths]
+
+    features = [{"type": "Feature", "geometry": {"type": "MultiLineString", "coordinates": lines(row["paths_mm"])},
                  "properties": {k: v for k, v in row.items() if k != "paths_mm"}} for row in rows]
-    # not geographic: coordinates are specimen mm (X right, Y down the plate); RFC 7946 has no CRS member
-    return {"type": "FeatureCollection", "units": "mm", "frame": "specimen", "features": features}
+    # not geographic, so RFC 7946 has no CRS member for it: "frame" names the model's frame instead
+    return {"type": "FeatureCollection", "units": "mm", "frame": "specimen model", "features": features}
 
 
 def _write_csv(ws: JobWorkspace, rows: list[dict[str, Any]]) -> None:
