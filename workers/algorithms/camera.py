@@ -299,4 +299,6 @@ def vector_from_rotation(R: np.ndarray) -> np.ndarray:
 
 def world_to_camera(points: np.ndarray, R: np.ndarray, C: np.ndarray) -> np.ndarray:
     """World points (N, 3) -> camera frame (N, 3) for the pose ``X_cam = R (X - C)``."""
-    return (np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(C).ravel()) @ np.asarray(R).T
+    # einsum, not ``@ R.T``: BLAS takes ~10x longer on an (N, 3) x (3, 3) product with millions of rows
+    return np.einsum("ij,kj->ik", np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(C).ravel(),
+                     np.asarray(R, dtype=np.float64))

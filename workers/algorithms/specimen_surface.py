@@ -49,8 +49,15 @@ class Surface:
         x, y = np.meshgrid(np.arange(self.shape[1]) * self.mm_per_px, r * self.mm_per_px)
         return self.frame.to_model(np.stack([x, y, height], axis=-1))
 
+    @cached_property
+    def flat(self) -> bool:
+        """Every height is 0: the surface is its plane (a plate)."""
+        return not np.any(self.height)
+
     def normals(self, rows: slice = slice(None)) -> np.ndarray:
         """(h, W, 3) float64 unit model normals of ``rows`` (toward +N), from the height map's slopes."""
+        if self.flat:
+            return np.broadcast_to(self.frame.axes[2], (*self.height[rows].shape, 3))
         dx, dy = self._slopes
         dx, dy = dx[rows], dy[rows]
         local = np.stack([-dx, -dy, np.ones_like(dx)], axis=-1)
@@ -174,15 +181,19 @@ class PhotoDepth:
     normals: np.ndarray  # (T, 3) float64 unit normals
     offsets: np.ndarray  # (T,) float64, n . X on the triangle's plane
 
-    def visible(self, points: np.ndarray) -> np.ndarray:
+    def visible(self, points: np.ndarray, uv: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: the photo sees each of ``points`` (N, 3) model mm (nothing of the mesh in front of it).
 
-        Points outside the photo or behind the camera are not visible.
+        Points outside the photo or behind the camera are not visible. ``uv`` (N, 2): their photo pixels, if
+        already projected (points in front of the camera only).
         """
-        cam = world_to_camera(points, self.R, self.C)
-        front = cam[:, 2] > 1e-9
-        uv = np.full((len(points), 2), -1.0)
-        uv[front] = self.camera.project(cam[front])
+        if uv is None:
+            cam = world_to_camera(points, self.R, self.C)
+            front = cam[:, 2] > 1e-9
+            uv = np.full((len(points), 2), -1.0)
+            uv[front] = self.camera.project(cam[front])
+        else:
+            front = np.ones(len(points), bool)
         col, row = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
         inside = front & (col >= 0) & (col < self.ids.shape[1]) & (row >= 0) & (row < self.ids.shape[0])
         result = inside.copy()
@@ -224,29 +235,75 @@ def rectification_maps(camera: Camera, R: np.ndarray, C: np.ndarray, surface: Su
     """``cv2.remap`` maps that render a photo onto the raster rows ``rows`` of ``surface``, and how well the
     photo sees each point.
 
+    On a flat surface without a mesh (a plate) the maps are smooth: they are computed every
+    ``COARSE_STEP`` pixels and interpolated bilinearly (off by under 0.01 photo px, see the tests), unless
+    the plane runs behind the camera within the block.
+
     Returns
     -------
     map_x, map_y : (h, W) float32 photo pixel (x, y) of each raster pixel, with distortion.
     density : (h, W) float32 photo pixels per mm^2 of surface there (``f^2 cos(incidence) / distance^2``);
         0 where the photo does not see the point (off the specimen, outside the frame, hidden by ``depth``).
     """
+    if surface.mesh is None and surface.flat:
+        coarse = _plane_maps(camera, R, C, surface, rows)
+        if coarse is not None:
+            return coarse
     points = surface.points(rows)
-    shape = points.shape[:2]
-    points = points.reshape(-1, 3)
-    on = np.all(np.isfinite(points), axis=1)
-    cam = world_to_camera(np.where(on[:, None], points, 0.0), R, C)
-    front = on & (cam[:, 2] > 1e-9)
-    uv = np.full((len(points), 2), -1e6)
-    uv[front] = camera.project(cam[front])
-    seen = front & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height - 1)
+    uv, density, seen = _sample(camera, R, C, points, surface.normals(rows))
     if depth is not None and seen.any():
-        seen[seen] = depth.visible(points[seen])
-    view = C - np.where(on[:, None], points, 0.0)
+        seen[seen] = depth.visible(points[seen], uv[seen])
+    return uv[..., 0], uv[..., 1], np.where(seen, density, 0.0).astype(np.float32)
+
+
+def _sample(camera: Camera, R: np.ndarray, C: np.ndarray, points: np.ndarray,
+            normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Photo pixel (h, w, 2) float32, sampling density (h, w) float32 and (h, w) bool "in front and inside
+    the frame" of model points (h, w, 3) (NaN: none) with unit normals (h, w, 3)."""
+    shape = points.shape[:2]
+    flat_points = points.reshape(-1, 3)
+    on = np.all(np.isfinite(flat_points), axis=1)
+    safe = np.where(on[:, None], flat_points, 0.0)
+    cam = world_to_camera(safe, R, C)
+    front = on & (cam[:, 2] > 1e-9)
+    uv = np.full((len(safe), 2), -1e6)
+    uv[front] = camera.project(cam[front])
+    view = C - safe
     distance = np.linalg.norm(view, axis=1)
-    cos_incidence = np.abs(np.einsum("ij,ij->i", surface.normals(rows).reshape(-1, 3), view)) / distance
-    density = np.where(seen, camera.fx * camera.fy * cos_incidence / distance**2, 0.0)
-    return (uv[:, 0].reshape(shape).astype(np.float32), uv[:, 1].reshape(shape).astype(np.float32),
-            density.reshape(shape).astype(np.float32))
+    cos_incidence = np.abs(np.einsum("ij,ij->i", normals.reshape(-1, 3), view)) / distance
+    density = camera.fx * camera.fy * cos_incidence / distance**2
+    uv32 = uv.reshape(*shape, 2).astype(np.float32)
+    return uv32, density.reshape(shape).astype(np.float32), front.reshape(shape) & _in_frame(camera, uv32)
+
+
+def _in_frame(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    return (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1)
+
+
+COARSE_STEP = 8  # raster pixels between the exactly computed nodes of a plate's maps
+
+
+def _plane_maps(camera: Camera, R: np.ndarray, C: np.ndarray, surface: Surface,
+                rows: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The maps of a flat surface's ``rows`` from nodes every ``COARSE_STEP`` px, bilinearly; None when a
+    node lies behind the camera (the horizon crosses the block: the maps are not smooth there)."""
+    first, stop, _ = rows.indices(surface.shape[0])
+    height, width = stop - first, surface.shape[1]
+    node_rows = first + COARSE_STEP * np.arange(-(-(height - 1) // COARSE_STEP) + 1)
+    node_cols = COARSE_STEP * np.arange(-(-(width - 1) // COARSE_STEP) + 1)
+    x, y = np.meshgrid(node_cols * surface.mm_per_px, node_rows * surface.mm_per_px)
+    points = surface.frame.to_model(np.stack([x, y, np.zeros_like(x)], axis=-1))
+    if np.any(world_to_camera(points.reshape(-1, 3), R, C)[:, 2] <= 1e-9):
+        return None
+    normals = np.broadcast_to(surface.frame.axes[2], points.shape)
+    uv, density, _ = _sample(camera, R, C, points, normals)
+    # node (i, j) sits at block pixel (row i * step, col j * step): remap samples the node grid there
+    grid_x, grid_y = np.meshgrid(np.arange(width, dtype=np.float32) / COARSE_STEP,
+                                 np.arange(height, dtype=np.float32) / COARSE_STEP)
+    fine = [cv2.remap(a, grid_x, grid_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            for a in (uv[..., 0], uv[..., 1], density)]
+    seen = _in_frame(camera, np.stack(fine[:2], axis=-1))
+    return fine[0], fine[1], np.where(seen, fine[2], 0.0).astype(np.float32)
 
 
 def _nearest_fill(values: np.ndarray) -> np.ndarray:

@@ -100,32 +100,27 @@ def compose_stage(camera: Camera, views: list[tuple[np.ndarray, np.ndarray, np.n
     Returns (H, W, 3) uint8 BGR and (H, W) bool, True where at least one photo sees the specimen.
     """
     shape = surface.shape
-    total = np.zeros((*shape, 3), np.float32)
-    weight_sum = np.zeros(shape, np.float32)
-    best = np.zeros(shape, np.float32)
+    image = np.zeros((*shape, 3), np.uint8)
+    best = np.zeros(shape, np.float32)  # "best": the density of the photo each pixel came from; "average": count
+    total = np.zeros((*shape, 3), np.float32) if compose == "average" else None
     step = max(1, BLOCK_PIXELS // shape[1])
-    for image, R, C in views:
+    for photo, R, C in views:
         depth = photo_depth(surface.mesh, camera, R, C) if surface.mesh is not None else None
         for top in range(0, shape[0], step):
             rows = slice(top, min(top + step, shape[0]))
             map_x, map_y, density = rectification_maps(camera, R, C, surface, rows, depth)
-            warped = cv2.remap(image, map_x, map_y, INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
-            _accumulate(warped.astype(np.float32), density, total[rows], weight_sum[rows], best[rows], compose)
-    mask = weight_sum > 0
-    image = np.zeros((*shape, 3), np.uint8)
-    image[mask] = np.clip(np.rint(total[mask] / weight_sum[mask, None]), 0, 255).astype(np.uint8)
-    return image, mask
-
-
-def _accumulate(warped: np.ndarray, density: np.ndarray, total: np.ndarray, weight_sum: np.ndarray,
-                best: np.ndarray, compose: str) -> None:
-    """Add one photo's block to the running composition (views of ``total``, ``weight_sum``, ``best``)."""
-    if compose == "average":
-        seen = density > 0
-        total[seen] += warped[seen]
-        weight_sum[seen] += 1.0
-    else:
-        better = density > best
-        total[better] = warped[better]
-        weight_sum[better] = 1.0
-        np.maximum(best, density, out=best)
+            warped = cv2.remap(photo, map_x, map_y, INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
+            if total is None:
+                better = density > best[rows]
+                np.copyto(image[rows], warped, where=better[..., None])
+                np.maximum(best[rows], density, out=best[rows])
+            else:
+                seen = density > 0
+                np.add(total[rows], warped, out=total[rows], where=seen[..., None])
+                best[rows] += seen
+    if total is not None:
+        for top in range(0, shape[0], step):  # the mean, block by block: no full-size temporaries
+            rows = slice(top, min(top + step, shape[0]))
+            mean = total[rows] / np.maximum(best[rows], 1.0)[..., None]
+            image[rows] = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
+    return image, best > 0

@@ -1,0 +1,158 @@
+"""Crack-survey rectification against OpenCV, and the time of detection and measurement per megapixel.
+
+Run by hand from the repository root (never in CI)::
+
+    .venv/bin/python bench/crack_survey.py [--mm-per-px 0.1] [--json OUT]
+
+Scenes (``tests/crack_scenes.py``, written to a temporary folder): a 400 x 300 mm plate and a curved panel
+(arc 400 mm, radius 300 mm, as a mesh of 8192 triangles), each photographed at 45 degrees by a
+2008 x 1336 camera with Brown distortion (the UAV frame size of our source documents).
+
+- **Rectification** of one photo onto the specimen raster at ``--mm-per-px``:
+  ours (``rectify_specimen.compose_stage``: per raster pixel the full camera model, occlusion z-buffer for
+  the mesh, Lanczos resampling, in row blocks) against OpenCV's way for a plate, ``cv2.undistort`` then
+  ``cv2.warpPerspective`` with the plane's homography (Lanczos too). OpenCV has no mesh rectification,
+  so the panel row has no reference. The mean absolute grey difference between the two plate rasters
+  tells that they render the same thing.
+- **Detection and measurement**: ``detect_cracks`` and ``measure_cracks`` on the rectified plate, seconds
+  per raster megapixel (no reference: OpenCV has no crack detector).
+
+Every run is in its own spawned child (peak RSS = that run's VmHWM). Ratios are ours / OpenCV.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.mosaic_vs_opencv import in_child, peak_rss_mib  # noqa: E402
+
+FRAME = (2008, 1336)
+
+
+def make_scene(folder: str, radius_mm: float | None) -> dict[str, Any]:
+    """Render the scene once; what the children need, as plain data."""
+    from tests.crack_scenes import make_crack_survey
+
+    scene = make_crack_survey(Path(folder), [(45.0, 0.0)], seed=3, width_mm=400.0, height_mm=300.0,
+                              frame_size=FRAME, panel_radius_mm=radius_mm)
+    photo = scene.photos[0]
+    return {"camera": scene.camera.to_json(), "photo": str(photo.path), "R": photo.R.tolist(), "C": photo.C.tolist(),
+            "mesh": str(scene.mesh_path) if scene.mesh_path else None, "width_mm": 400.0, "height_mm": 300.0}
+
+
+def _surface(scene: dict[str, Any], mm_per_px: float, C: Any) -> Any:
+    from workers.algorithms.mesh import best_fit_plane, read_mesh
+    from workers.algorithms.specimen_surface import mesh_surface, plate_surface
+
+    if scene["mesh"] is None:
+        return plate_surface(scene["width_mm"], scene["height_mm"], mm_per_px)
+    mesh = read_mesh(Path(scene["mesh"]).read_bytes(), scene["mesh"])
+    return mesh_surface(mesh, best_fit_plane(mesh), mm_per_px, C)
+
+
+def run_ours(scene: dict[str, Any], mm_per_px: float, out: str) -> dict[str, Any]:
+    import cv2
+    import numpy as np
+
+    from workers.algorithms.camera import Camera
+    from workers.stages.rectify_specimen import compose_stage
+
+    camera = Camera.from_json(scene["camera"])
+    image = cv2.imread(scene["photo"], cv2.IMREAD_COLOR)
+    R, C = np.array(scene["R"]), np.array(scene["C"])
+    started = time.perf_counter()
+    surface = _surface(scene, mm_per_px, C)
+    raster, mask = compose_stage(camera, [(image, R, C)], surface, "best")
+    seconds = time.perf_counter() - started
+    np.save(out, raster)
+    return {"ok": True, "seconds": seconds, "peak_mib": peak_rss_mib(), "size": list(raster.shape[1::-1]),
+            "coverage": float(mask.mean())}
+
+
+def run_opencv(scene: dict[str, Any], mm_per_px: float, out: str) -> dict[str, Any]:
+    import cv2
+    import numpy as np
+
+    from workers.algorithms.camera import Camera
+
+    camera = Camera.from_json(scene["camera"])
+    image = cv2.imread(scene["photo"], cv2.IMREAD_COLOR)
+    R, C = np.array(scene["R"]), np.array(scene["C"])
+    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]])
+    dist = np.array([camera.k1, camera.k2, camera.t1, camera.t2, camera.k3])
+    t = -R @ C
+    plane_to_photo = K @ np.column_stack([R[:, 0], R[:, 1], t]) @ np.diag([mm_per_px, mm_per_px, 1.0])
+    cols = int(np.floor(scene["width_mm"] / mm_per_px + 1e-9)) + 1
+    rows = int(np.floor(scene["height_mm"] / mm_per_px + 1e-9)) + 1
+    started = time.perf_counter()
+    ideal = cv2.undistort(image, K, dist)
+    raster = cv2.warpPerspective(ideal, plane_to_photo, (cols, rows), flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP)
+    seconds = time.perf_counter() - started
+    np.save(out, raster)
+    return {"ok": True, "seconds": seconds, "peak_mib": peak_rss_mib(), "size": [cols, rows]}
+
+
+def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
+    import numpy as np
+
+    from workers.algorithms.crack_geometry import measure_cracks
+    from workers.algorithms.cracks import detect_cracks
+
+    raster = np.load(raster_file)
+    started = time.perf_counter()
+    mask = detect_cracks(raster)
+    detected = time.perf_counter()
+    cracks = measure_cracks(mask, mm_per_px, min_length_mm=1.0)
+    measured = time.perf_counter()
+    mpx = raster.shape[0] * raster.shape[1] / 1e6
+    return {"ok": True, "megapixels": mpx, "detect_s_per_mpx": (detected - started) / mpx,
+            "measure_s_per_mpx": (measured - detected) / mpx, "cracks": len(cracks), "peak_mib": peak_rss_mib()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--mm-per-px", type=float, default=0.1)
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    args = parser.parse_args(argv)
+    import numpy as np
+
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        plate = make_scene(str(Path(tmp) / "plate"), None)
+        panel = make_scene(str(Path(tmp) / "panel"), 300.0)
+        ours_file, cv_file, panel_file = (str(Path(tmp) / n) for n in ("ours.npy", "cv.npy", "panel.npy"))
+        ours = in_child(run_ours, plate, args.mm_per_px, ours_file)
+        cv = in_child(run_opencv, plate, args.mm_per_px, cv_file)
+        mesh = in_child(run_ours, panel, args.mm_per_px, panel_file)
+        both = ours["ok"] and cv["ok"]
+        difference = (float(np.mean(np.abs(np.load(ours_file).astype(np.float32) - np.load(cv_file))))
+                      if both else None)
+        detection = in_child(run_detection, ours_file, args.mm_per_px) if ours["ok"] else {"ok": False}
+    results = {"mm_per_px": args.mm_per_px, "plate_ours": ours, "plate_opencv": cv, "panel_ours": mesh,
+               "plate_mean_abs_difference_grey": difference, "detection": detection,
+               "ratios": {k: round(ours[k] / cv[k], 3) if both else None for k in ("seconds", "peak_mib")}}
+    print(f"rectification onto {ours.get('size')} px at {args.mm_per_px} mm/px, one {FRAME[0]}x{FRAME[1]} photo")
+    for name, r in (("plate, ours", ours), ("plate, OpenCV undistort+warpPerspective", cv), ("panel mesh, ours", mesh)):
+        print(f"  {name:42s} {r['seconds']:7.2f} s  peak {r['peak_mib']:7.0f} MiB")
+    print(f"  ratio ours/OpenCV (plate): time {results['ratios']['seconds']}, memory {results['ratios']['peak_mib']}; "
+          f"mean |difference| {difference:.2f} grey levels" if both else "  no ratio: a run failed")
+    if detection["ok"]:
+        print(f"detection {detection['detect_s_per_mpx']:.2f} s/MPx, measurement {detection['measure_s_per_mpx']:.2f}"
+              f" s/MPx on {detection['megapixels']:.1f} MPx ({detection['cracks']} cracks), "
+              f"peak {detection['peak_mib']:.0f} MiB")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
