@@ -75,9 +75,11 @@ def check_against_truth(result: dict, scene: CrackSurveyScene) -> list[str]:
         assert len(found) == len(truth), [round(c["length_mm"], 1) for c in stage["cracks"]]
         true_total = sum(c.length_mm for c in truth)
         assert abs(stage["total_length_mm"] / true_total - 1) < 0.05
-        errors = []
+        errors, width_errors = [], []
         for reported, crack, dist in pair_up(found, truth):
             errors.append(reported["length_mm"] / crack.length_mm - 1)
+            width_errors.append(reported["mean_width_mm"] - crack.width_mm)
+            assert abs(width_errors[-1]) < 0.15, (reported["mean_width_mm"], crack.width_mm)  # 0.6 px
             assert abs(errors[-1]) < 0.05, (reported["length_mm"], crack.length_mm)
             assert np.percentile(dist, 95) <= 2 * MM_PER_PX, np.percentile(dist, 95)  # positions within 2 output px
             if crack.status == "grown":
@@ -85,7 +87,7 @@ def check_against_truth(result: dict, scene: CrackSurveyScene) -> list[str]:
             else:
                 assert reported["status"] == crack.status, (reported["status"], crack.status)
         lines.append(f"{stage['label']}: {len(found)} cracks, total {stage['total_length_mm'] / true_total - 1:+.1%}, "
-                     f"worst crack {max(errors, key=abs):+.1%}")
+                     f"worst crack {max(errors, key=abs):+.1%}, mean width {np.mean(width_errors):+.2f} mm off")
     return lines
 
 
@@ -95,7 +97,7 @@ def test_cracks_measured_in_mm_at_each_viewing_angle(client: TestClient, api_set
     result = survey(client, api_settings, scene, (view,))
     for photo in result["photos"]:  # control points carry 0.3 px of noise
         assert photo["rms_px"] < 0.6 and photo["rms_mm"] < 0.3 and len(photo["points"]) == 7
-    check_against_truth(result, scene)
+    print(*check_against_truth(result, scene), sep="\n")  # the figures, with pytest -s
     second = result["comparisons"][0]
     assert (second["from"], second["to"], second["new"], second["grown"], second["unchanged"]) == (0, 1, 2, 1, 4)
 

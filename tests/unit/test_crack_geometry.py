@@ -3,11 +3,14 @@ histogram, and matching between load stages."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from workers.algorithms.crack_geometry import (
     Crack,
+    crack_coverage,
+    darkening,
     length_histogram,
     match_cracks,
     measure_cracks,
@@ -223,3 +226,24 @@ def test_two_cracks_that_join_count_as_one_grown_crack() -> None:
     # far outside the tolerance nothing matches
     moved = _stage([left + np.array([0.0, 40.0])])
     assert [m.status for m in match_cracks(previous, moved, tolerance_mm=0.3)] == ["new"]
+
+
+@pytest.mark.parametrize(("width", "tolerance"), [(1.6, 1.0), (3.0, 0.35), (5.5, 0.35)])
+def test_width_from_darkness_not_from_a_fat_mask(width: float, tolerance: float) -> None:
+    """A dark line of known width, blurred (sigma 0.8 px) and noisy on a lit coating; the detector's mask
+    is 4 px too wide on each side. Widths from the mask's area are that much too wide; from the darkening,
+    right to 0.35 px, except for a line too thin for its full depth to show through the blur."""
+    rng = np.random.default_rng(1)
+    line = segment((200, 200), 260, 25)
+    # the share of each pixel the line covers, from a 4x supersampled rasterisation
+    fine = band_mask(line * 4 + 1.5, width * 4, (SHAPE[0] * 4, SHAPE[1] * 4))
+    share = fine.reshape(SHAPE[0], 4, SHAPE[1], 4).mean(axis=(1, 3))
+    light = np.linspace(0.7, 1.2, SHAPE[1])[None, :]  # a light ramp across the coating
+    grey = 160.0 * light * (1 - 0.45 * share)
+    grey = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 0.8) + rng.normal(0, 2.0, SHAPE).astype(np.float32)
+    fat = band_mask(line, width + 8.0)
+    coverage = crack_coverage(darkening(grey, fat, background_px=12.0), fat)
+    (by_mask,) = measure_cracks(fat, 1.0)
+    (by_darkness,) = measure_cracks(fat, 1.0, coverage=coverage)
+    assert by_mask.mean_width_mm > width + 6.0
+    assert abs(by_darkness.mean_width_mm - width) < tolerance, by_darkness.mean_width_mm

@@ -75,11 +75,32 @@ class Surface:
     def lift(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) plane (x, y) mm -> (N, 3) model mm on the surface (height interpolated bilinearly)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        filled = np.where(np.isfinite(self.height), self.height, _nearest_fill(self.height)).astype(np.float32)
+        if self.flat:
+            return self.frame.to_model(xy)
         px = (xy / self.mm_per_px).astype(np.float32)
-        h = cv2.remap(filled, px[:, 0].reshape(-1, 1), px[:, 1].reshape(-1, 1), cv2.INTER_LINEAR,
+        h = cv2.remap(self._filled_height, px[:, 0].reshape(-1, 1), px[:, 1].reshape(-1, 1), cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_REPLICATE).ravel()
         return self.frame.to_model(np.column_stack([xy, h]))
+
+    def width_stretch(self, xy: np.ndarray, tangents: np.ndarray) -> np.ndarray:
+        """(N,) how much longer on the surface than on the plane a short step across a line is, at plane
+        points ``xy`` (N, 2) mm where the line runs along ``tangents`` (N, 2): ``sqrt(1 + slope^2)`` of
+        the surface across the line (1 on a plate)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.flat:
+            return np.ones(len(xy))
+        across = np.asarray(tangents, dtype=np.float64).reshape(-1, 2)[:, ::-1] * [-1.0, 1.0]
+        across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-12)
+        col = np.clip(np.rint(xy[:, 0] / self.mm_per_px).astype(int), 0, self.shape[1] - 1)
+        row = np.clip(np.rint(xy[:, 1] / self.mm_per_px).astype(int), 0, self.shape[0] - 1)
+        dx, dy = self._slopes
+        slope = dx[row, col] * across[:, 0] + dy[row, col] * across[:, 1]
+        return np.sqrt(1.0 + slope**2)
+
+    @cached_property
+    def _filled_height(self) -> np.ndarray:
+        """(H, W) float32 heights with the nearest surface height off the surface (to sample at its edge)."""
+        return np.where(np.isfinite(self.height), self.height, _nearest_fill(self.height)).astype(np.float32)
 
 
 def raster_shape(width_mm: float, height_mm: float, mm_per_px: float) -> tuple[int, int]:

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
+from workers.algorithms.crack_geometry import darkening
 from workers.algorithms.cracks import detect_cracks, to_gray
 from workers.config import CrackSurveyConfig
 from workers.pipeline import PipelineError
@@ -29,11 +30,16 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         except ValueError as exc:
             raise PipelineError(f"options.threshold_low/high: {exc}") from None
         mask = dark_enough(filled, mask & _trusted(seen, margin_px), cfg.min_crack_contrast,
-                           background_px=max(2.0 / cfg.mm_per_px, 4.0))
+                           background_px(cfg.mm_per_px))
         ws.save_crack_mask(s, mask)
         pixels.append(int(mask.sum()))
     progress(1.0, f"{len(cfg.stages)} stage(s)")
     return {"stages": len(cfg.stages), "crack_pixels": pixels}
+
+
+def background_px(mm_per_px: float) -> float:
+    """Scale of the coating's local grey level around a crack, px: 2 mm, at least 4 px."""
+    return max(2.0 / mm_per_px, 4.0)
 
 
 def _trusted(seen: np.ndarray, margin_px: int) -> np.ndarray:
@@ -59,12 +65,7 @@ def dark_enough(image: np.ndarray, mask: np.ndarray, min_contrast: float, backgr
     """
     if min_contrast <= 0 or not mask.any():
         return mask
-    grey = to_gray(image)
-    free = (~mask).astype(np.float32)
-    background = cv2.GaussianBlur(grey * free, (0, 0), background_px) / np.maximum(
-        cv2.GaussianBlur(free, (0, 0), background_px), 1e-3)
-    darkening = 1.0 - grey / np.maximum(background, 1.0)
     labels, n = ndi.label(mask, structure=np.ones((3, 3), bool))
-    medians = ndi.median(darkening, labels, index=np.arange(1, n + 1))
+    medians = ndi.median(darkening(to_gray(image), mask, background_px), labels, index=np.arange(1, n + 1))
     keep = np.r_[False, np.asarray(medians) >= min_contrast]
     return np.asarray(keep[labels])

@@ -8,9 +8,18 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.crack_geometry import Crack, measure_cracks, path_length, summarise_cracks
+from workers.algorithms.crack_geometry import (
+    Crack,
+    crack_coverage,
+    darkening,
+    measure_cracks,
+    path_length,
+    summarise_cracks,
+)
+from workers.algorithms.cracks import to_gray
 from workers.algorithms.specimen_surface import Surface
 from workers.config import CrackSurveyConfig
+from workers.stages.detect_cracks import background_px
 from workers.stages.rectify_specimen import load_surface
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
 
@@ -21,8 +30,11 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     surface = load_surface(ws)
     for s in range(len(cfg.stages)):
         progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
-        cracks = [along_surface(c, surface) for c in
-                  measure_cracks(ws.load_crack_mask(s), cfg.mm_per_px, min_length_mm=cfg.min_crack_length_mm)]
+        mask = ws.load_crack_mask(s)
+        image, _ = ws.load_rectified(s)
+        coverage = crack_coverage(darkening(to_gray(image), mask, background_px(cfg.mm_per_px)), mask)
+        cracks = [along_surface(c, surface) for c in measure_cracks(mask, cfg.mm_per_px, coverage=coverage,
+                                                                    min_length_mm=cfg.min_crack_length_mm)]
         summary = summarise_cracks(cracks)
         write_json(ws.measured_cracks_file(s), {
             "cracks": [crack_to_json(c) for c in cracks],
@@ -39,9 +51,16 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
 
 
 def along_surface(crack: Crack, surface: Surface) -> Crack:
-    """``crack`` (measured on the plane) with its length measured along the specimen's surface: each path
-    lifted to its height above the plane (no change on a plate)."""
-    return replace(crack, length_mm=sum(path_length(surface.lift(p)) for p in crack.paths_mm))
+    """``crack`` (measured on the plane) measured along the specimen's surface: its paths lifted to their
+    height above the plane for the length, its widths stretched by the surface's slope across it, averaged
+    along the crack (no change on a plate)."""
+    if surface.flat:
+        return crack
+    stretch = np.concatenate([surface.width_stretch(p, np.gradient(p, axis=0)) for p in crack.paths_mm
+                              if len(p) > 1] or [np.ones(1)])
+    return replace(crack, length_mm=sum(path_length(surface.lift(p)) for p in crack.paths_mm),
+                   mean_width_mm=crack.mean_width_mm * float(stretch.mean()),
+                   max_width_mm=crack.max_width_mm * float(stretch.max()))
 
 
 def crack_to_json(crack: Crack) -> dict[str, Any]:
