@@ -1,16 +1,20 @@
-/* Fotoskhema viewer: flights, photo uploads, live job progress and the mosaic on a Leaflet map.
+/* Fotoskhema viewer: flights, photo uploads, live job progress and the mosaic on a Leaflet map; crack
+ * surveys of specimens under load.
  *
- * Vanilla JS with no build step. Routing is by hash (#/, #/flights/3, #/jobs/7). Every view renders
- * into #app and registers cleanups (event stream, map, timers, upload) that run when the route
- * changes; after each await a view checks `view.alive` so a slow answer never draws over the next page.
- * The pages are ES modules (flights.js, flight.js, job.js, result-map.js over lib.js); Leaflet is the
- * classic script loaded before them and used as the global `L`.
+ * Vanilla JS with no build step. Routing is by hash (#/, #/flights/3, #/jobs/7, #/crack-surveys/new,
+ * #/crack-surveys/9). Every view renders into #app and registers cleanups (event stream, map, timers,
+ * upload) that run when the route changes; after each await a view checks `view.alive` so a slow answer
+ * never draws over the next page. The pages are ES modules (flights.js, flight.js, job.js, result-map.js,
+ * crack-survey.js, crack-survey-new.js over lib.js); Leaflet is the classic script loaded before them and
+ * used as the global `L`.
  */
 
 import { ApiError, h, messageOf } from "./lib.js";
 import { renderFlightList } from "./flights.js";
 import { renderFlight } from "./flight.js";
 import { renderJob } from "./job.js";
+import { renderCrackSurvey, renderCrackSurveyList } from "./crack-survey.js";
+import { renderNewCrackSurvey } from "./crack-survey-new.js";
 
 // -- Router --------------------------------------------------------------------------------------
 
@@ -18,6 +22,9 @@ const routes = [
   [/^#?\/?$/, (view, root) => renderFlightList(view, root)],
   [/^#\/flights\/(\d+)$/, (view, root, m) => renderFlight(view, root, Number(m[1]))],
   [/^#\/jobs\/(\d+)$/, (view, root, m) => renderJob(view, root, Number(m[1]))],
+  [/^#\/crack-surveys\/?$/, (view, root) => renderCrackSurveyList(view, root)],
+  [/^#\/crack-surveys\/new$/, (view, root) => renderNewCrackSurvey(view, root)],
+  [/^#\/crack-surveys\/(\d+)$/, (view, root, m) => renderCrackSurvey(view, root, Number(m[1]))],
 ];
 let currentView = null;
 

@@ -6,12 +6,13 @@
 import {
   api,
   dataTable,
+  downloadList,
   factList,
-  formatBytes,
   formatNumber,
   formatPlusMinus,
   h,
   humanize,
+  list,
   messageOf,
 } from "./lib.js";
 
@@ -36,7 +37,9 @@ export async function showCalibration(view, job, card) {
     return;
   }
   const body = stereo ? stereoBody(job, result) : cameraBody(result);
-  card.replaceChildren(...body.filter(Boolean), downloads(outputs)); // replaceChildren would print a null
+  const label = (name) => (name === "calibration.json" ? "Calibration (camera JSON)" : name);
+  // replaceChildren would print a null
+  card.replaceChildren(...body.filter(Boolean), h("div", { class: "quality-block" }, downloadList(outputs, label)));
 }
 
 // -- One camera ----------------------------------------------------------------------------------
@@ -327,24 +330,6 @@ function measureResult(answer) {
 }
 
 // -- Shared ----------------------------------------------------------------------------------------
-
-function downloads(outputs) {
-  return h(
-    "div",
-    { class: "quality-block" },
-    h("h3", {}, "Downloads"),
-    outputs.length
-      ? h("ul", { class: "plain downloads" }, outputs.map((o) => h("li", {},
-        h("a", { href: o.url, download: o.name, "data-testid": `download-${o.name.replace(/\.[^.]+$/, "")}` },
-          o.name === "calibration.json" ? "Calibration (camera JSON)" : o.name,
-          h("span", { class: "muted small" }, ` ${o.name} · ${formatBytes(o.size_bytes)}`)))))
-      : h("p", { class: "muted small" }, "No downloads."),
-  );
-}
-
-function list(value) {
-  return Array.isArray(value) ? value.filter((item) => item && typeof item === "object") : [];
-}
 
 function strings(value) {
   return Array.isArray(value) ? value.map(String) : [];

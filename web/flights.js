@@ -12,7 +12,9 @@ export async function renderFlightList(view, root) {
       "div",
       { class: "page-head" },
       h("h1", {}, "Flights"),
-      h("p", { class: "muted" }, "Upload the photos of a drone flight, then run a mosaic job to get a map."),
+      h("p", { class: "muted" }, "Upload the photos of a drone flight, then run a mosaic job to get a map. ",
+        "Measuring the cracks of a specimen under load? ",
+        h("a", { href: "#/crack-surveys/new", "data-testid": "start-crack-survey" }, "Start a crack survey"), "."),
     ),
     h(
       "div",

@@ -1,4 +1,5 @@
-/* Job page (#/jobs/<id>): live progress per stage by Server-Sent Events, cancel, then the result. */
+/* Job page (#/jobs/<id>): live progress per stage by Server-Sent Events, cancel, then the result.
+ * `renderJobPage` is the frame other job pages (the crack survey's) share: status, progress, result cards. */
 
 import {
   ACTIVE,
@@ -18,63 +19,71 @@ import { CALIBRATION_KINDS, showCalibration } from "./calibration.js";
 import { showQuality } from "./quality.js";
 import { showResult } from "./result-map.js";
 
+export const CRACK_SURVEY_KIND = "crack_survey";
+
 // -- Job page ------------------------------------------------------------------------------------
 
 export async function renderJob(view, root, jobId) {
-  let job = await api("GET", `/api/jobs/${jobId}`);
+  const job = await api("GET", `/api/jobs/${jobId}`);
   if (!view.alive) return;
+  if (job.kind === CRACK_SURVEY_KIND) {
+    window.location.replace(`#/crack-surveys/${jobId}`); // its own page: map of the specimen, crack table
+    return;
+  }
   // Calibration jobs belong to no flight: no flight to name, no tiles to show.
   const calibration = CALIBRATION_KINDS.has(job.kind) || job.flight_id === null;
   const flight = calibration ? null : await api("GET", `/api/flights/${job.flight_id}`).catch(() => null);
   if (!view.alive) return;
-  document.title = `Job ${jobId} · Fotoskhema`;
-
-  const progress = jobProgressCard(view, jobId, (next) => update(next), () => followJob(view, jobId, update));
   const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
   const quality = h("section", { class: "card quality", "aria-labelledby": "quality-heading", "data-testid": "quality", hidden: true });
-  const badge = statusBadge(job.status, { "data-testid": "job-status", role: "status", "aria-live": "polite" });
+  const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
+  renderJobPage(view, root, job, {
+    crumbs: calibration
+      ? [["Calibrations"], [`Job #${jobId}`]]
+      : [["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]],
+    cards: [result, quality],
+    onSucceeded: (done) => showOutcome(view, done, result, quality, calibration),
+  });
+}
+
+/**
+ * What every job page shows: breadcrumb, title and status, `cards` (the result, above the progress once the
+ * job has succeeded: it is what one came for), then the live progress by Server-Sent Events; calls
+ * `onSucceeded(job)` once, when the job has succeeded.
+ */
+export function renderJobPage(view, root, initial, { crumbs, cards, onSucceeded }) {
+  const jobId = initial.id;
+  document.title = `Job ${jobId} · Fotoskhema`;
+  const progress = jobProgressCard(view, jobId, (next) => update(next), () => followJob(view, jobId, update));
+  const badge = statusBadge(initial.status, { "data-testid": "job-status", role: "status", "aria-live": "polite" });
   const updated = h("span", {});
   let resultShown = false;
 
-  function update(next) {
-    job = next;
+  function update(job) {
     badge.className = `badge large status-${job.status}`;
     badge.textContent = job.status;
     updated.textContent = formatDate(job.updated_at);
     progress.update(job);
     if (job.status === "succeeded" && !resultShown) {
       resultShown = true;
-      showOutcome(view, job, result, quality, calibration);
+      onSucceeded(job);
     }
   }
 
-  const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
   root.append(
-    calibration
-      ? breadcrumb(["Calibrations"], [`Job #${jobId}`])
-      : breadcrumb(["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]),
-    h(
-      "div",
-      { class: "page-head row" },
-      h("h1", {}, `${humanize(job.kind)} job #${jobId}`),
-      badge,
-    ),
-    h("p", { class: "muted small" }, `Created ${formatDate(job.created_at)} · last update `, updated),
-    result, // above the progress once the job has succeeded: the map is what one came for
-    quality,
+    breadcrumb(...crumbs),
+    h("div", { class: "page-head row" }, h("h1", {}, `${humanize(initial.kind)} job #${jobId}`), badge),
+    h("p", { class: "muted small" }, `Created ${formatDate(initial.created_at)} · last update `, updated),
+    ...cards,
     progress.node,
   );
-  update(job);
-  if (!TERMINAL.has(job.status)) followJob(view, jobId, update);
+  update(initial);
+  if (!TERMINAL.has(initial.status)) followJob(view, jobId, update);
 }
 
 /** A succeeded job's result: the calibration, or the mosaic map and its Quality card. */
 function showOutcome(view, job, result, quality, calibration) {
-  const failed = (card, what) => (err) => {
-    if (!view.alive) return;
-    card.hidden = false;
-    card.replaceChildren(h("p", { class: "alert error", role: "alert" }, `Could not load the ${what}: ${messageOf(err)}`));
-  };
+  const failed = (card, what) => showLoadError(view, card, what);
   if (calibration) {
     showCalibration(view, job, result).catch(failed(result, "result"));
     return;
@@ -83,6 +92,15 @@ function showOutcome(view, job, result, quality, calibration) {
   const outputs = api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []);
   showResult(view, job, result, outputs).catch(failed(result, "result"));
   outputs.then((list) => showQuality(view, list, quality)).catch(failed(quality, "quality report"));
+}
+
+/** A catch handler that shows, in `card`, that `what` (e.g. "result") could not be loaded. */
+export function showLoadError(view, card, what) {
+  return (err) => {
+    if (!view.alive) return;
+    card.hidden = false;
+    card.replaceChildren(h("p", { class: "alert error", role: "alert" }, `Could not load the ${what}: ${messageOf(err)}`));
+  };
 }
 
 /** Follow a job's Server-Sent Events; fall back to polling if the stream keeps failing. */
@@ -205,7 +223,12 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
   return { node, update };
 }
 
-const READY = { mosaic: "the mosaic is ready", calibration: "the camera is calibrated", stereo_calibration: "the rig is calibrated" };
+const READY = {
+  mosaic: "the mosaic is ready",
+  calibration: "the camera is calibrated",
+  stereo_calibration: "the rig is calibrated",
+  crack_survey: "the cracks are measured",
+};
 
 function stageSentence(job) {
   const stage = job.stage ? humanize(job.stage) : "";

@@ -47,6 +47,11 @@ export function formatDate(iso) {
   return date.toLocaleString(undefined, { dateStyle: "medium", timeStyle: "short" });
 }
 
+/** The objects of an array from a report (anything else in it, or a missing array: none). */
+export function list(value) {
+  return Array.isArray(value) ? value.filter((item) => item && typeof item === "object") : [];
+}
+
 /** A number with `digits` decimals and an optional unit; "–" when it is missing or not finite. */
 export function formatNumber(value, digits = 2, unit = "") {
   if (typeof value !== "number" || !Number.isFinite(value)) return "–";
@@ -138,6 +143,17 @@ export function dataTable({ caption, columns, rows, attrs, empty, scroll = true 
     })),
   );
   return scroll ? h("div", { class: "table-scroll" }, table) : table;
+}
+
+/** "Downloads": a link per job output ({name, url, size_bytes}), named by `labelOf(name)`; [heading, list]. */
+export function downloadList(outputs, labelOf = (name) => name) {
+  const link = (o) => h("a", { href: o.url, download: o.name, "data-testid": `download-${o.name.replace(/\.[^.]+$/, "")}` },
+    labelOf(o.name), h("span", { class: "muted small" }, ` ${o.name} · ${formatBytes(o.size_bytes)}`));
+  return [
+    h("h3", {}, "Downloads"),
+    outputs.length ? h("ul", { class: "plain downloads" }, outputs.map((o) => h("li", {}, link(o))))
+      : h("p", { class: "muted small" }, "No downloads."),
+  ];
 }
 
 // -- API -----------------------------------------------------------------------------------------

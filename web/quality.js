@@ -3,7 +3,7 @@
  * ground control points. Every field may be missing (older reports, planar jobs): it then shows "–".
  */
 
-import { api, dataTable, factList, formatMetres, formatNumber, h, humanize } from "./lib.js";
+import { api, dataTable, factList, formatMetres, formatNumber, h, humanize, list } from "./lib.js";
 
 const MODES = {
   planar: "Planar (flat ground)",
@@ -56,10 +56,6 @@ function rmsText(working, original) {
   const a = formatNumber(working, 2, "px");
   if (typeof original !== "number" || !Number.isFinite(original)) return a;
   return `${a} (${formatNumber(original, 2, "px")} at full resolution)`;
-}
-
-function list(value) {
-  return Array.isArray(value) ? value.filter((item) => item && typeof item === "object") : [];
 }
 
 /** A short list of {name, reason}; nothing when `empty` is null and the list is empty. */

@@ -41,7 +41,9 @@ function insetBounds(west, south, east, north) {
   return L.latLngBounds([south + dy, west + dx], [north - dy, east - dx]);
 }
 
-function createMosaicMap(node, tilejson, basemapUrl) {
+/** A Leaflet map of a TileJSON's layer: on the Earth (over an optional basemap) when it is georeferenced,
+ * in Leaflet's CRS.Simple (one map unit per raster pixel, y negated) otherwise. Answers { map, mosaic }. */
+export function createMosaicMap(node, tilejson, basemapUrl, attribution = "Mosaic: Fotoskhema") {
   const [west, south, east, north] = tilejson.bounds;
   const bounds = L.latLngBounds([south, west], [north, east]);
   const minzoom = Number.isFinite(tilejson.minzoom) ? tilejson.minzoom : 0;
@@ -50,7 +52,7 @@ function createMosaicMap(node, tilejson, basemapUrl) {
     bounds: insetBounds(west, south, east, north),
     noWrap: true,
     tileSize: 256,
-    attribution: "Mosaic: Fotoskhema",
+    attribution,
   };
   // Whole zoom levels only (Leaflet's default zoomSnap): at a fractional zoom the tiles are scaled and
   // hairline seams show between them; whole levels also show the mosaic's pixels one to one.

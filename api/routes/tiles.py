@@ -1,8 +1,12 @@
-"""XYZ tiles and TileJSON of a job's mosaic, read with rio-tiler from that job's COG only.
+"""XYZ tiles and TileJSON of a job's rasters, read with rio-tiler from that job's own COGs only.
 
-A georeferenced mosaic is served in WebMercatorQuad. A mosaic without GPS has no map coordinates:
-it is served in rio-tiler's local pixel grid (``ImageReader``), and its TileJSON says so, so the
-viewer shows it in a plain pixel plane instead of pretending it lies somewhere on Earth.
+Two rasters have tiles: a mosaic job's mosaic, and each load stage's rectified specimen of a crack survey.
+Both routes name a job (and a stage), never a path; they share the tile and TileJSON code below.
+
+A georeferenced raster is served in WebMercatorQuad. A raster without map coordinates (a mosaic without
+GPS: no CRS; a specimen: a local engineering CRS in mm, neither geographic nor projected) is served in
+rio-tiler's local pixel grid (``ImageReader``), and its TileJSON says so, so the viewer shows it in a
+plain pixel plane instead of pretending it lies somewhere on Earth.
 """
 
 from __future__ import annotations
@@ -21,16 +25,21 @@ from rio_tiler.io import ImageReader, Reader
 from rio_tiler.models import ImageData
 
 from api import job_service
+from api.crack_survey_service import KIND as CRACK_SURVEY
 from api.deps import DbDep, SettingsDep
 from api.errors import ConflictError, NotFoundError
+from api.photo_jobs import job_of_kind
 from workers.workspace import job_workspace
 
 router = APIRouter(prefix="/tiles", tags=["tiles"])
 TILE_SIZE = 256
 MAX_ZOOM = 26
+PNG: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {}}}}  # OpenAPI: tiles are PNG
 
 
-def _cog_path(db: Any, settings: Any, job_id: int) -> Path:
+# -- Which COG a route serves --------------------------------------------------------------------
+
+def _mosaic_cog(db: Any, settings: Any, job_id: int) -> Path:
     job = job_service.get_job(db, job_id)  # 404 for an unknown job
     path = job_workspace(settings.data_dir, job_id).mosaic_file()
     if not path.exists():
@@ -38,21 +47,65 @@ def _cog_path(db: Any, settings: Any, job_id: int) -> Path:
     return path
 
 
-def _open(path: Path) -> Reader:
-    with rasterio.open(path) as src:
-        georeferenced = src.crs is not None
-    return Reader(str(path)) if georeferenced else ImageReader(str(path))
+def _stage_cog(db: Any, settings: Any, job_id: int, stage: int) -> Path:
+    job = job_of_kind(db, job_id, (CRACK_SURVEY,), "crack survey")  # 404 for any other job
+    ws = job_workspace(settings.data_dir, job_id)
+    count = len(ws.load_config().get("stages", [])) if ws.config_file().exists() else 0
+    if not 0 <= stage < count:
+        raise NotFoundError(f"crack survey {job_id} has no load stage {stage} (it has {count})")
+    path = ws.stage_cog_file(stage)
+    if not path.exists():
+        raise ConflictError(f"load stage {stage} of crack survey {job_id} is not rectified yet (status: {job.status})")
+    return path
 
 
-@router.get("/{job_id}/{z}/{x}/{y}.png", responses={200: {"content": {"image/png": {}}}})
+# -- Routes --------------------------------------------------------------------------------------
+
+@router.get("/{job_id}/{z}/{x}/{y}.png", responses=PNG)
 def tile(job_id: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
     """A 256 px PNG tile, transparent outside the mosaic; 404 outside the bounds its TileJSON gives."""
-    path = _cog_path(db, settings, job_id)
+    return _tile_response(_mosaic_cog(db, settings, job_id), z, x, y, f"the mosaic of job {job_id}")
+
+
+@router.get("/{job_id}/tilejson.json")
+def tilejson(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    """TileJSON 2.2.0 of the job's mosaic; ``georeferenced: false`` means a local pixel grid."""
+    path = _mosaic_cog(db, settings, job_id)
+    return _tilejson(path, request.url_for("tile", job_id=job_id, z=0, x=0, y=0), f"job {job_id} mosaic")
+
+
+@router.get("/{job_id}/stages/{stage}/{z}/{x}/{y}.png", responses=PNG)
+def stage_tile(job_id: int, stage: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
+    """A 256 px PNG tile of load stage ``stage`` (0-based) of a crack survey, rectified onto the specimen."""
+    path = _stage_cog(db, settings, job_id, stage)
+    return _tile_response(path, z, x, y, f"load stage {stage} of crack survey {job_id}")
+
+
+@router.get("/{job_id}/stages/{stage}/tilejson.json")
+def stage_tilejson(job_id: int, stage: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    """TileJSON 2.2.0 of one load stage's rectified specimen, a local pixel grid (``georeferenced: false``):
+    its pixel (col, row) spans [col, col + 1] x [row, row + 1] and is centred on the specimen point
+    (X, Y) = (col, row) * mm_per_px, mm (``report.json``)."""
+    path = _stage_cog(db, settings, job_id, stage)
+    template = request.url_for("stage_tile", job_id=job_id, stage=stage, z=0, x=0, y=0)
+    return _tilejson(path, template, f"crack survey {job_id} stage {stage}")
+
+
+# -- Reading a COG -------------------------------------------------------------------------------
+
+def _open(path: Path) -> Reader:
+    """rio-tiler's reader: on the Earth for a geographic or projected CRS, the pixel grid otherwise."""
+    with rasterio.open(path) as src:
+        mapped = src.crs is not None and (src.crs.is_geographic or src.crs.is_projected)
+    return Reader(str(path)) if mapped else ImageReader(str(path))
+
+
+def _tile_response(path: Path, z: int, x: int, y: int, what: str) -> Response:
     if not 0 <= z <= MAX_ZOOM or x < 0 or y < 0:
         raise NotFoundError(f"tile {z}/{x}/{y} does not exist")
     with _open(path) as reader:
         georeferenced = reader.crs is not None
-        # The local pixel grid of a mosaic without GPS has more than 2**z columns at a zoom level.
+        # The local pixel grid of a raster without map coordinates has more than 2**z columns at a zoom level.
         if georeferenced and not (x < 2**z and y < 2**z):
             raise NotFoundError(f"tile {z}/{x}/{y} does not exist")
         try:
@@ -63,7 +116,7 @@ def tile(job_id: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) 
             # A UTM mosaic is slightly rotated inside its lon/lat box, so rio-tiler calls tiles at the
             # box's corners outside; they are inside the advertised bounds: answer them empty, not 404.
             if not (georeferenced and _meets_geographic_bounds(reader, x, y, z)):
-                raise NotFoundError(f"tile {z}/{x}/{y} is outside the mosaic of job {job_id}") from None
+                raise NotFoundError(f"tile {z}/{x}/{y} is outside {what}") from None
             png = _empty_png()
     return Response(png, media_type="image/png", headers={"Cache-Control": "public, max-age=3600"})
 
@@ -79,11 +132,9 @@ def _empty_png() -> bytes:
     return bytes(ImageData(np.ma.masked_all((3, TILE_SIZE, TILE_SIZE), dtype="uint8")).render(img_format="PNG"))
 
 
-@router.get("/{job_id}/tilejson.json")
-def tilejson(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
-    """TileJSON 2.2.0 of the job's mosaic; ``georeferenced: false`` means a local pixel grid."""
-    path = _cog_path(db, settings, job_id)
-    template = str(request.url_for("tile", job_id=job_id, z=0, x=0, y=0)).replace("/0/0/0.png", "/{z}/{x}/{y}.png")
+def _tilejson(path: Path, tile_zero: Any, name: str) -> dict[str, Any]:
+    """TileJSON of the COG at ``path``; ``tile_zero`` is the URL of its tile 0/0/0."""
+    template = str(tile_zero).removesuffix("/0/0/0.png") + "/{z}/{x}/{y}.png"
     with _open(path) as reader:
         georeferenced = reader.crs is not None
         if georeferenced:
@@ -92,7 +143,7 @@ def tilejson(job_id: int, request: Request, db: DbDep, settings: SettingsDep) ->
             west, south, east, north = 0.0, -float(reader.height), float(reader.width), 0.0
         minzoom, maxzoom = int(reader.minzoom), int(reader.maxzoom)
     return {
-        "tilejson": "2.2.0", "name": f"job {job_id} mosaic", "scheme": "xyz", "tiles": [template],
+        "tilejson": "2.2.0", "name": name, "scheme": "xyz", "tiles": [template],
         "bounds": [west, south, east, north], "minzoom": minzoom, "maxzoom": maxzoom,
         "center": [(west + east) / 2, (south + north) / 2, max(minzoom, maxzoom - 2)],
         "georeferenced": georeferenced, "tile_size": TILE_SIZE,

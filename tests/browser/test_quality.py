@@ -15,7 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.browser.support import ARTIFACTS, PageWatch
+from tests.browser.support import ARTIFACTS
 from tests.conftest import shared_data
 from tests.scenes import make_flight
 
@@ -77,12 +77,6 @@ def planar_job(live_service: Any, tmp_path_factory: pytest.TempPathFactory) -> d
 def _screenshot(page: Any, name: str) -> None:
     ARTIFACTS.mkdir(exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
-
-
-def _forget(watch: PageWatch, fragment: str) -> None:
-    """Drop the error answers (and the browser's console line about them) a test provoked on purpose."""
-    watch.error_responses[:] = [r for r in watch.error_responses if fragment not in r]
-    watch.console_errors[:] = [c for c in watch.console_errors if "status of 4" not in c]
 
 
 @pytest.mark.realdata
@@ -177,7 +171,7 @@ def test_stereo_rig_page_and_measure(watched_page, live_service) -> None:
     expect(page.get_by_test_id("measure-error")).to_contain_text("outside")  # the API's 422 detail
     expect(page.get_by_test_id("measured-point")).to_have_count(0)
     _screenshot(page, "stereo_rig")
-    _forget(watch, "/measure")
+    watch.forget("/measure")
     watch.assert_clean(live_service.url)
 
 
@@ -255,7 +249,7 @@ def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_p
     expect(page.get_by_test_id("gcp-error")).to_contain_text("bad.txt: line 1: unknown coordinate system")  # detail
     expect(page.get_by_test_id("gcp-status")).to_have_text("")
     _screenshot(page, "flight_gcps")
-    _forget(watch, "/gcps")
+    watch.forget("/gcps")
 
     # The job request itself is answered here (with the existing planar job) so that no ortho job runs.
     sent: list[dict] = []

@@ -1,0 +1,368 @@
+/* New crack survey (#/crack-surveys/new): the camera, the specimen and the load stages with their photos.
+ *
+ * On each photo a click adds a control point; a point is dragged (or moved with the arrow keys) to place
+ * it, and its position on the specimen (model X, Y in mm; Z = 0 on the plate) is typed beside it. Pixels
+ * follow the API: (0, 0) is the centre of the photo's first pixel. Everything is sent as one multipart
+ * request to POST /api/crack-surveys; a refusal (422) is shown next to the button and nothing entered is lost.
+ */
+
+import { api, apiForm, breadcrumb, formatDate, h, messageOf } from "./lib.js";
+
+const MIN_POINTS = 4; // a plane-to-photo mapping has 8 degrees of freedom
+let lastId = 0;
+const uid = (prefix) => `${prefix}-${++lastId}`;
+
+/** A problem with what was typed, found before sending: its message and the field to go to. */
+class FieldError extends Error {
+  constructor(field, message) {
+    super(message);
+    this.field = field;
+  }
+}
+
+export function renderNewCrackSurvey(view, root) {
+  document.title = "New crack survey · Fotoskhema";
+  const camera = cameraFields(view);
+  const specimen = specimenFields();
+  const stages = stageList(view);
+  const error = h("p", { class: "form-error", role: "alert", "data-testid": "survey-error" });
+  const status = h("p", { class: "muted small", role: "status", "aria-live": "polite" });
+  const submit = h("button", { type: "submit", class: "btn primary", "data-testid": "submit-survey" }, "Start the survey");
+  const form = h("form", { class: "form survey-form", novalidate: true, "aria-label": "New crack survey" },
+    h("div", { class: "survey-top" }, camera.node, specimen.node),
+    stages.node,
+    h("section", { class: "card submit-card" }, error, h("div", { class: "row" }, submit, status)));
+
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    error.textContent = "";
+    let options;
+    try {
+      options = { ...camera.read(), ...specimen.read(), stages: stages.read() };
+    } catch (err) {
+      if (!(err instanceof FieldError)) throw err;
+      error.textContent = err.message;
+      err.field.focus();
+      return;
+    }
+    const body = new FormData();
+    for (const file of stages.files()) body.append("files", file, file.name);
+    body.append("options", JSON.stringify(options));
+    submit.disabled = true;
+    status.textContent = "Uploading the photos…";
+    try {
+      const job = await apiForm("POST", "/api/crack-surveys", body);
+      if (view.alive) window.location.hash = `#/crack-surveys/${job.id}`;
+    } catch (err) {
+      if (!view.alive) return;
+      error.textContent = `Not started: ${messageOf(err)}`;
+      status.textContent = "";
+    } finally {
+      submit.disabled = false;
+    }
+  });
+
+  root.append(
+    breadcrumb(["Crack surveys", "#/crack-surveys"], ["New survey"]),
+    h("div", { class: "page-head" }, h("h1", {}, "New crack survey"),
+      h("p", { class: "lead" }, "For each load stage, add its photos and click at least four control points on each: points of the plate whose position you know, in mm from its corner (X right, Y down the plate).")),
+    form,
+  );
+}
+
+// -- Camera and specimen ---------------------------------------------------------------------------
+
+function cameraFields(view) {
+  const fromJob = h("input", { type: "radio", name: "camera-source", id: "camera-from-job", value: "job", checked: true, "data-testid": "camera-from-job" });
+  const fromJson = h("input", { type: "radio", name: "camera-source", id: "camera-from-json", value: "json", "data-testid": "camera-from-json" });
+  const select = h("select", { id: "calibration-job", "data-testid": "calibration-job", "aria-label": "Calibration job" },
+    h("option", { value: "" }, "Loading calibration jobs…"));
+  const json = h("textarea", { id: "camera-json", rows: 5, class: "mono", spellcheck: "false", "data-testid": "camera-json",
+    "aria-label": "Camera JSON", placeholder: '{"width": 4000, "height": 3000, "fx": 3100, "fy": 3100, "cx": 2000, "cy": 1500, "k1": -0.1}' });
+  let touched = false;
+  const sync = () => {
+    select.disabled = !fromJob.checked;
+    json.disabled = !fromJson.checked;
+  };
+  for (const radio of [fromJob, fromJson]) radio.addEventListener("change", () => { touched = true; sync(); });
+  api("GET", "/api/jobs").then((jobs) => {
+    if (!view.alive) return;
+    const done = jobs.filter((j) => j.kind === "calibration" && j.status === "succeeded").sort((a, b) => b.id - a.id);
+    select.replaceChildren(...(done.length ? done.map((j) => h("option", { value: j.id }, `Calibration #${j.id} · ${formatDate(j.created_at)}`))
+      : [h("option", { value: "" }, "No finished calibration job")]));
+    if (!done.length && !touched) fromJson.checked = true;
+    sync();
+  }).catch((err) => {
+    if (view.alive) select.replaceChildren(h("option", { value: "" }, `Could not list the jobs: ${messageOf(err)}`));
+  });
+  sync();
+
+  function read() {
+    if (fromJob.checked) {
+      if (!select.value) throw new FieldError(select, "Camera: pick a finished calibration job, or paste the camera JSON.");
+      return { calibration_job: Number(select.value) };
+    }
+    let camera;
+    try {
+      camera = JSON.parse(json.value);
+    } catch (err) {
+      throw new FieldError(json, `Camera JSON: ${err.message}`);
+    }
+    if (!camera || typeof camera !== "object" || Array.isArray(camera)) {
+      throw new FieldError(json, "Camera JSON: an object with width, height, fx, fy, cx, cy and the distortion terms.");
+    }
+    return { camera };
+  }
+  const node = h("fieldset", { class: "card", "data-testid": "camera" },
+    h("legend", {}, "Camera"),
+    h("p", { class: "muted small" }, "The calibrated camera that took every photo, at full size."),
+    h("label", { class: "check" }, fromJob, " From a calibration job"), select,
+    h("label", { class: "check" }, fromJson, " Paste the camera JSON"), json);
+  return { node, read };
+}
+
+function specimenFields() {
+  const field = (id, label, attrs) => {
+    const input = h("input", Object.assign({ id, type: "number", step: "any", min: 0, "data-testid": id }, attrs));
+    return { input, node: h("div", {}, h("label", { for: id }, label), input) };
+  };
+  const width = field("specimen-width", "Width (X) mm", { placeholder: "e.g. 200" });
+  const height = field("specimen-height", "Height (Y) mm", { placeholder: "e.g. 150" });
+  const resolution = field("mm-per-px", "Resolution, mm per pixel", { value: "0.2" });
+  function read() {
+    const value = ({ input }, what) => {
+      const n = Number(input.value);
+      if (input.value.trim() === "" || !Number.isFinite(n)) throw new FieldError(input, `Specimen: give ${what}.`);
+      return n;
+    };
+    return {
+      specimen: { width_mm: value(width, "its width in mm"), height_mm: value(height, "its height in mm") },
+      mm_per_px: value(resolution, "the resolution of the rectified images in mm per pixel"),
+    };
+  }
+  const node = h("fieldset", { class: "card", "data-testid": "specimen" },
+    h("legend", {}, "Specimen"),
+    h("p", { class: "muted small" }, "A plate: X to the right, Y down, from its top-left corner."),
+    h("div", { class: "field-row" }, width.node, height.node), resolution.node,
+    h("p", { class: "muted small" }, "Of the rectified images the cracks are found in: about a third of the finest crack's width."));
+  return { node, read };
+}
+
+// -- Load stages -----------------------------------------------------------------------------------
+
+function stageList(view) {
+  const stages = [];
+  const box = h("div", { class: "stage-list" });
+  const add = h("button", { type: "button", class: "btn", "data-testid": "add-stage" }, "Add stage");
+  const taken = (name) => stages.findIndex((stage) => stage.names().includes(name));
+  function renumber() {
+    stages.forEach((stage, i) => stage.number(i, stages.length));
+  }
+  function addStage() {
+    const stage = stageEditor(view, taken, () => {
+      stages.splice(stages.indexOf(stage), 1);
+      stage.node.remove();
+      renumber();
+    });
+    stages.push(stage);
+    box.append(stage.node);
+    renumber();
+  }
+  add.addEventListener("click", addStage);
+  addStage();
+  const node = h("section", { class: "card", "aria-labelledby": "stages-heading" },
+    h("h2", { id: "stages-heading" }, "Load stages"),
+    h("p", { class: "muted small" }, "In load order: each stage's cracks are compared with those of the stage before."),
+    box, add);
+  return {
+    node,
+    read: () => stages.map((stage) => stage.read()),
+    files: () => stages.flatMap((stage) => stage.files()),
+  };
+}
+
+function stageEditor(view, taken, onRemove) {
+  const legend = h("legend", {});
+  const labelId = uid("stage-label");
+  const loadId = uid("stage-load");
+  const label = h("input", { id: labelId, type: "text", maxlength: 100, "data-testid": "stage-label" });
+  const load = h("input", { id: loadId, type: "number", step: "any", placeholder: "optional", "data-testid": "stage-load" });
+  const files = h("input", { type: "file", accept: "image/*", multiple: true, class: "visually-hidden", "data-testid": "stage-photos" });
+  const pick = h("label", { class: "btn small" }, files, "Add photos…");
+  const remove = h("button", { type: "button", class: "btn small danger", "data-testid": "remove-stage" }, "Remove stage");
+  const note = h("p", { class: "form-error", role: "alert" });
+  const photos = [];
+  const photoBox = h("div", { class: "photo-list" });
+  let index = 0;
+
+  files.addEventListener("change", () => {
+    note.textContent = "";
+    for (const file of files.files) {
+      const owner = taken(file.name);
+      if (owner >= 0) {
+        note.textContent = `${file.name} is already in stage ${owner + 1}: each photo belongs to one stage.`;
+        continue;
+      }
+      const photo = photoEditor(view, file, () => {
+        photos.splice(photos.indexOf(photo), 1);
+        photo.node.remove();
+      });
+      photos.push(photo);
+      photoBox.append(photo.node);
+    }
+    files.value = ""; // the same file can be added again after it was removed
+  });
+  remove.addEventListener("click", onRemove);
+
+  function number(i, count) {
+    if (!label.value || label.value === `Stage ${index + 1}`) label.value = `Stage ${i + 1}`; // not a typed label
+    index = i;
+    legend.textContent = `Stage ${i + 1}`;
+    remove.disabled = count < 2;
+  }
+  function read() {
+    const where = `Stage ${index + 1}`;
+    if (!label.value.trim()) throw new FieldError(label, `${where}: give it a label.`);
+    if (!photos.length) throw new FieldError(files, `${where}: add at least one photo.`);
+    const stage = { label: label.value.trim(), photos: photos.map((photo) => photo.read(where)) };
+    if (load.value.trim() !== "") stage.load = Number(load.value);
+    return stage;
+  }
+  const node = h("fieldset", { class: "stage-editor", "data-testid": "stage" },
+    legend,
+    h("div", { class: "field-row" },
+      h("div", {}, h("label", { for: labelId }, "Label"), label),
+      h("div", {}, h("label", { for: loadId }, "Load ", h("span", { class: "muted" }, "(optional, your unit)")), load)),
+    h("div", { class: "row stage-actions" }, pick, remove),
+    note, photoBox);
+  return { node, number, read, files: () => photos.map((p) => p.file), names: () => photos.map((p) => p.file.name) };
+}
+
+// -- One photo and its control points --------------------------------------------------------------
+
+function photoEditor(view, file, onRemove) {
+  const url = URL.createObjectURL(file);
+  view.cleanups.push(() => URL.revokeObjectURL(url));
+  const img = h("img", { src: url, alt: `Photo ${file.name}: click to add a control point`, draggable: "false", "data-testid": "photo-image" });
+  const markers = h("div", { class: "markers" });
+  const frame = h("div", { class: "photo-frame" }, img, markers);
+  const size = h("span", { class: "muted small" });
+  const count = h("p", { class: "point-count", "data-testid": "point-count", "aria-live": "polite" });
+  const rows = h("tbody", {});
+  const actual = h("input", { type: "checkbox", "data-testid": "actual-size" });
+  const remove = h("button", { type: "button", class: "btn small danger", "data-testid": "remove-photo" }, "Remove photo");
+  const points = []; // { x, y (photo pixels), X, Y (typed mm, as text), marker, pixelText }
+
+  img.addEventListener("load", () => { size.textContent = ` ${img.naturalWidth} × ${img.naturalHeight} px`; });
+  img.addEventListener("click", (event) => {
+    if (!img.naturalWidth) return;
+    points.push({ ...pixelAt(img, event.clientX, event.clientY), X: "", Y: "" });
+    render();
+    rows.lastElementChild.querySelector("input").focus({ preventScroll: true });
+  });
+  actual.addEventListener("change", () => frame.classList.toggle("actual", actual.checked));
+  remove.addEventListener("click", () => {
+    URL.revokeObjectURL(url);
+    onRemove();
+  });
+
+  function place(point) {
+    point.marker.style.left = `${((point.x + 0.5) / img.naturalWidth) * 100}%`;
+    point.marker.style.top = `${((point.y + 0.5) / img.naturalHeight) * 100}%`;
+    point.pixelText.textContent = `${point.x.toFixed(1)}, ${point.y.toFixed(1)}`;
+  }
+  function render() {
+    markers.replaceChildren(...points.map((point, k) => {
+      point.marker = marker(img, point, k, place);
+      return point.marker;
+    }));
+    rows.replaceChildren(...points.map((point, k) => pointRow(point, k, () => {
+      points.splice(k, 1);
+      render();
+    })));
+    points.forEach(place);
+    const n = points.length;
+    count.textContent = `${n} control point${n === 1 ? "" : "s"}${n < MIN_POINTS ? `: at least ${MIN_POINTS} are needed` : ""}`;
+    count.classList.toggle("warn", n < MIN_POINTS);
+  }
+  render();
+
+  function read(where) {
+    return {
+      image: file.name,
+      control_points: points.map((point, k) => {
+        const mm = (value, input, axis) => {
+          if (String(value).trim() === "" || !Number.isFinite(Number(value))) {
+            throw new FieldError(input, `${where}, ${file.name}, point ${k}: give its model ${axis} in mm.`);
+          }
+          return Number(value);
+        };
+        const [inputX, inputY] = rows.children[k].querySelectorAll("input");
+        const round = (v) => Math.round(v * 100) / 100;
+        return { pixel: [round(point.x), round(point.y)], model: [mm(point.X, inputX, "X"), mm(point.Y, inputY, "Y"), 0] };
+      }),
+    };
+  }
+  const node = h("div", { class: "photo-editor", "data-testid": "photo", "data-name": file.name },
+    h("div", { class: "row spread photo-head" },
+      h("span", {}, h("span", { class: "filename strong" }, file.name), size),
+      h("span", { class: "row" }, h("label", { class: "check small" }, actual, " Actual size"), remove)),
+    h("div", { class: "photo-grid" },
+      h("div", { class: "photo-scroll" }, frame),
+      h("div", { class: "point-panel" }, count,
+        h("table", { class: "table compact points" },
+          h("caption", { class: "visually-hidden" }, `Control points of ${file.name}`),
+          h("thead", {}, h("tr", {}, ["Point", "Pixel x, y", "X mm", "Y mm", ""].map((t) => h("th", { scope: "col" }, t)))),
+          rows),
+        h("p", { class: "muted small" }, "Click the photo to add a point; drag a point, or focus it and use the arrow keys, to move it."))));
+  return { node, file, read };
+}
+
+/** Photo pixel (x, y) at viewport point (clientX, clientY) over `img`: (0, 0) is the centre of its first pixel. */
+function pixelAt(img, clientX, clientY) {
+  const rect = img.getBoundingClientRect();
+  return onPhoto(img, ((clientX - rect.left) * img.naturalWidth) / rect.width - 0.5,
+    ((clientY - rect.top) * img.naturalHeight) / rect.height - 0.5);
+}
+
+function onPhoto(img, x, y) {
+  const clamp = (v, n) => Math.min(Math.max(v, -0.5), n - 0.5);
+  return { x: clamp(x, img.naturalWidth), y: clamp(y, img.naturalHeight) };
+}
+
+/** A draggable, keyboard-movable marker of control point `k` on `img`; `moved(point)` redraws it. */
+function marker(img, point, k, moved) {
+  const node = h("button", { type: "button", class: "marker", "data-testid": "marker", "aria-label": `Control point ${k}: drag or use the arrow keys to move it` },
+    h("span", {}, String(k)));
+  node.addEventListener("pointerdown", (event) => {
+    event.preventDefault();
+    node.setPointerCapture(event.pointerId);
+  });
+  node.addEventListener("pointermove", (event) => {
+    if (!node.hasPointerCapture(event.pointerId)) return;
+    Object.assign(point, pixelAt(img, event.clientX, event.clientY));
+    moved(point);
+  });
+  node.addEventListener("keydown", (event) => {
+    const step = event.shiftKey ? 10 : 1;
+    const delta = { ArrowLeft: [-step, 0], ArrowRight: [step, 0], ArrowUp: [0, -step], ArrowDown: [0, step] }[event.key];
+    if (!delta) return;
+    event.preventDefault();
+    Object.assign(point, onPhoto(img, point.x + delta[0], point.y + delta[1]));
+    moved(point);
+  });
+  return node;
+}
+
+function pointRow(point, k, onDelete) {
+  const input = (axis) => {
+    const node = h("input", { type: "number", step: "any", value: point[axis], "aria-label": `Point ${k} model ${axis} mm`,
+      "data-testid": `point-model-${axis.toLowerCase()}` });
+    node.addEventListener("input", () => { point[axis] = node.value; });
+    return node;
+  };
+  point.pixelText = h("span", { class: "mono" });
+  return h("tr", { "data-testid": "point-row" },
+    h("td", {}, String(k)), h("td", {}, point.pixelText), h("td", {}, input("X")), h("td", {}, input("Y")),
+    h("td", {}, h("button", { type: "button", class: "btn small", "aria-label": `Delete point ${k}`, "data-testid": "point-delete", onclick: onDelete }, "×")));
+}

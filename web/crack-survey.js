@@ -1,0 +1,320 @@
+/* Crack surveys: the list (#/crack-surveys) and one survey (#/crack-surveys/<id>).
+ *
+ * A survey's page follows the job like every job page (job.js), then shows each load stage's rectified
+ * specimen on a Leaflet map in CRS.Simple (the stage's own tiles), with its cracks drawn over it in their
+ * status colour; a slider picks the stage, a table lists its cracks (a row shows its crack on the map), and
+ * the control points' residuals say how well each photo was oriented.
+ *
+ * The report gives crack paths in specimen mm (X right, Y down the plate) with raster pixel (col, row)
+ * centred on (X, Y) / mm_per_px; on the tile grid that pixel spans [col, col + 1], and CRS.Simple shows the
+ * grid with y negated.
+ */
+
+import { api, dataTable, downloadList, factList, formatDate, formatNumber, h, list, statusBadge } from "./lib.js";
+import { CRACK_SURVEY_KIND, renderJobPage, showLoadError } from "./job.js";
+import { createMosaicMap } from "./result-map.js";
+
+// The colours of the stage overlay PNGs the worker draws (write_crack_report.STATUS_BGR), as RGB.
+const STATUS_COLOURS = { first: "#ffc800", new: "#ff0000", grown: "#ff00ff", unchanged: "#00c800" };
+const STATUS_TEXT = { first: "first seen", new: "new", grown: "grown", unchanged: "unchanged" };
+
+// -- List ------------------------------------------------------------------------------------------
+
+export async function renderCrackSurveyList(view, root) {
+  document.title = "Crack surveys · Fotoskhema";
+  const body = h("p", { class: "muted" }, "Loading crack surveys…");
+  root.append(
+    h("div", { class: "page-head row spread" },
+      h("div", {}, h("h1", {}, "Crack surveys"),
+        h("p", { class: "muted" }, "Photograph a specimen at each load stage; get its cracks measured in mm and compared stage by stage.")),
+      h("a", { class: "btn primary", href: "#/crack-surveys/new", "data-testid": "new-crack-survey" }, "New crack survey")),
+    h("section", { class: "card", "aria-label": "All crack surveys" }, body),
+  );
+  const jobs = (await api("GET", "/api/jobs")).filter((job) => job.kind === CRACK_SURVEY_KIND).sort((a, b) => b.id - a.id);
+  if (!view.alive) return;
+  body.replaceWith(dataTable({
+    caption: "Crack surveys",
+    columns: [{ label: "Survey" }, { label: "Specimen" }, { label: "Stages" }, { label: "Status" }, { label: "Created" }],
+    rows: jobs.map((job) => {
+      const options = job.options || {};
+      return { attrs: { "data-testid": "survey-row" }, cells: [
+        h("a", { class: "strong", href: `#/crack-surveys/${job.id}` }, `Survey #${job.id}`),
+        specimenSize(options.specimen),
+        list(options.stages).map((stage) => stage.label).join(", ") || "–",
+        statusBadge(job.status),
+        formatDate(job.created_at),
+      ] };
+    }),
+    empty: "No crack surveys yet: start one with “New crack survey”.",
+    scroll: false,
+  }));
+}
+
+// -- One survey ------------------------------------------------------------------------------------
+
+export async function renderCrackSurvey(view, root, jobId) {
+  const { job } = await api("GET", `/api/crack-surveys/${jobId}`); // 404 for a job of any other kind
+  if (!view.alive) return;
+  const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
+  const residuals = h("section", { class: "card", "aria-labelledby": "residuals-heading", "data-testid": "residuals", hidden: true });
+  renderJobPage(view, root, job, {
+    crumbs: [["Crack surveys", "#/crack-surveys"], [`Survey #${jobId}`]],
+    cards: [result, residuals],
+    onSucceeded: () => showSurvey(view, jobId, result, residuals).catch(showLoadError(view, result, "survey")),
+  });
+}
+
+async function showSurvey(view, jobId, card, residualCard) {
+  const heading = () => h("h2", { id: "result-heading" }, "Cracks");
+  card.hidden = false;
+  card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the survey…"));
+  const tilejsons = new Map(); // stage -> promise of its TileJSON, asked for once
+  const stageTiles = (s) => {
+    if (!tilejsons.has(s)) tilejsons.set(s, api("GET", `/tiles/${jobId}/stages/${s}/tilejson.json`));
+    return tilejsons.get(s);
+  };
+  const [data, outputs, tilejson] = await Promise.all([
+    api("GET", `/api/crack-surveys/${jobId}`),
+    api("GET", `/api/jobs/${jobId}/outputs`).then((d) => (d && d.outputs) || []),
+    stageTiles(0),
+  ]);
+  if (!view.alive) return;
+  const report = data && data.result;
+  const stages = list(report && report.stages);
+  if (!stages.length) {
+    card.replaceChildren(heading(), h("p", { class: "alert error", role: "alert" }, "The job finished but wrote no report."));
+    return;
+  }
+  const mapNode = h("div", { class: "map specimen-map", "data-testid": "map", role: "region", "aria-label": "Specimen map" });
+  const stagePanel = h("div", { class: "control" });
+  const legend = h("div", { class: "control" });
+  const tableBox = h("div", { class: "crack-table" });
+  card.replaceChildren(
+    h("div", { class: "row spread" }, heading(), h("span", { class: "muted small", "data-testid": "specimen" },
+      `Specimen ${specimenSize(report.specimen)} · ${formatNumber(report.mm_per_px, 3)} mm/px`)),
+    h("div", { class: "result-grid" }, mapNode, h("div", { class: "map-controls" }, stagePanel, legend)),
+    tableBox,
+    h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(stages))),
+  );
+  const { map, mosaic } = createMosaicMap(mapNode, tilejson, "", "Specimen: Fotoskhema");
+  view.cleanups.push(() => map.remove());
+  const table = { node: null, select: () => {} }; // the current stage's, replaced by show()
+  const cracks = crackLayer(map, report.mm_per_px, (id) => table.select(id, true));
+  const slider = stageSlider(stages, (s) => show(s));
+  let current = 0;
+
+  function show(s) {
+    current = s;
+    const stage = stages[s];
+    stagePanel.replaceChildren(slider, stageFacts(stage, stages[s - 1], jobId));
+    legend.replaceChildren(...legendList(list(stage.cracks)));
+    cracks.draw(list(stage.cracks));
+    Object.assign(table, crackTable(stage, (id) => cracks.select(id)));
+    tableBox.replaceChildren(table.node);
+    stageTiles(s).then((tiles) => {
+      if (view.alive && current === s) mosaic.setUrl(tiles.tiles[0]);
+    }).catch(showLoadError(view, card, `tiles of ${stage.label}`));
+  }
+  show(0);
+  residualCard.hidden = false;
+  residualCard.replaceChildren(...residualSection(list(report.photos), stages));
+}
+
+function stageSlider(stages, onStage) {
+  const output = h("output", { for: "stage-slider", class: "muted small", "data-testid": "stage-number" });
+  const slider = h("input", {
+    id: "stage-slider", type: "range", min: 0, max: stages.length - 1, step: 1, value: 0,
+    "data-testid": "stage-slider", disabled: stages.length < 2,
+  });
+  const label = () => {
+    const s = Number(slider.value);
+    output.textContent = `${s + 1} of ${stages.length}`;
+    slider.setAttribute("aria-valuetext", `Stage ${s + 1}: ${stages[s].label}`);
+  };
+  slider.addEventListener("input", () => {
+    label();
+    onStage(Number(slider.value));
+  });
+  label();
+  return h("div", {}, h("label", { for: "stage-slider" }, "Load stage ", output), slider);
+}
+
+/** The stage's name, load and figures, and what changed since the stage before. */
+function stageFacts(stage, previous, jobId) {
+  const cracks = list(stage.cracks);
+  const counts = countBy(cracks);
+  let changes;
+  if (previous) {
+    const growth = (stage.total_length_mm ?? NaN) - (previous.total_length_mm ?? NaN);
+    const grownBy = cracks.reduce((sum, c) => sum + (c.status === "grown" && Number.isFinite(c.growth_mm) ? c.growth_mm : 0), 0);
+    changes = [
+      h("strong", {}, `Since ${previous.label}: `),
+      `${counts.new || 0} new, ${counts.grown || 0} grown, ${counts.unchanged || 0} unchanged. `,
+      `Total length ${signed(growth)} mm`, counts.grown ? ` (the grown cracks ${signed(grownBy)} mm)` : "", ".",
+    ];
+  } else {
+    changes = [h("strong", {}, "First stage: "), `${cracks.length} crack(s), nothing to compare with.`];
+  }
+  return h("div", { class: "stage-facts" },
+    h("p", { class: "stage-title strong", "data-testid": "stage-title" },
+      stage.label, Number.isFinite(stage.load) ? h("span", { class: "muted" }, ` · load ${stage.load}`) : null),
+    h("p", { class: "small", "data-testid": "stage-changes" }, changes),
+    factList([
+      ["Cracks", String(cracks.length), { "data-testid": "stage-count" }],
+      ["Total length", formatNumber(stage.total_length_mm, 1, "mm")],
+      ["Mean width", formatNumber(stage.mean_width_mm, 2, "mm")],
+      ["Max width", formatNumber(stage.max_width_mm, 2, "mm")],
+      ["Seen", formatNumber(100 * stage.coverage, 0, "%")],
+    ]),
+    stage.overlay ? h("p", { class: "small" }, h("a", {
+      href: `/api/jobs/${jobId}/outputs/${encodeURIComponent(stage.overlay)}`, download: stage.overlay, "data-testid": "stage-overlay",
+    }, "This stage with its cracks drawn (PNG)")) : null);
+}
+
+function legendList(cracks) {
+  const counts = countBy(cracks);
+  return [
+    h("h3", {}, "Crack status"),
+    h("ul", { class: "plain legend", "data-testid": "legend" }, Object.keys(STATUS_COLOURS).map((status) =>
+      h("li", { "data-status": status }, swatch(status), ` ${STATUS_TEXT[status]} `,
+        h("span", { class: "muted small" }, `(${counts[status] || 0})`)))),
+  ];
+}
+
+/** The cracks of one stage as polylines over the tiles; `select(id)` highlights one and zooms to it. */
+function crackLayer(map, mmPerPx, onClick) {
+  const group = L.featureGroup().addTo(map);
+  const lines = new Map();
+  const toLatLng = ([x, y]) => [-(y / mmPerPx + 0.5), x / mmPerPx + 0.5];
+  function draw(cracks) {
+    group.clearLayers();
+    lines.clear();
+    for (const crack of cracks) {
+      const paths = list(crack.paths_mm).map((path) => path.filter(isPoint).map(toLatLng)).filter((p) => p.length > 1);
+      if (!paths.length) continue;
+      const line = L.polyline(paths, { color: STATUS_COLOURS[crack.status] || "#888888", weight: 3, opacity: 0.95,
+        className: `crack crack-${crack.status}` });
+      line.bindTooltip(`Crack ${crack.id}: ${STATUS_TEXT[crack.status] || crack.status}, ${formatNumber(crack.length_mm, 1, "mm")}`, { sticky: true });
+      line.on("click", () => onClick(crack.id));
+      group.addLayer(line);
+      lines.set(crack.id, line);
+    }
+  }
+  function select(id) {
+    for (const [key, line] of lines) {
+      const chosen = key === id;
+      line.setStyle(chosen ? { weight: 5, opacity: 1 } : { weight: 3, opacity: 0.45 });
+      const path = line.getElement();
+      if (path) path.classList.toggle("crack-selected", chosen);
+      if (chosen) {
+        line.bringToFront();
+        map.fitBounds(line.getBounds(), { padding: [40, 40], maxZoom: 1 });
+      }
+    }
+  }
+  return { draw, select };
+}
+
+/** The crack table of one stage; `select(id, scroll)` marks a row (and scrolls to it for a map click). */
+function crackTable(stage, onSelect) {
+  const rows = new Map();
+  const cracks = list(stage.cracks);
+  function select(id, scroll) {
+    for (const [key, row] of rows) row.classList.toggle("selected", key === id);
+    const row = rows.get(id);
+    if (row && scroll) row.scrollIntoView({ block: "nearest" });
+    onSelect(id);
+  }
+  const node = h("div", {},
+    h("h3", { id: "crack-table-heading" }, `Cracks of ${stage.label} (${cracks.length})`),
+    dataTable({
+      caption: `Cracks of ${stage.label}`,
+      columns: [{ label: "Crack" }, { label: "Status" }, { label: "Length mm", num: true }, { label: "Mean width mm", num: true },
+        { label: "Max width mm", num: true }, { label: "Orientation", num: true }, { label: "Growth mm", num: true }],
+      rows: cracks.map((crack) => ({
+        attrs: { "data-testid": "crack-row", "data-crack": crack.id, "data-status": crack.status, class: "clickable" },
+        cells: [
+          h("button", { type: "button", class: "link-button", "aria-label": `Show crack ${crack.id} on the map` }, `#${crack.id}`),
+          h("span", { class: "nowrap" }, swatch(crack.status), ` ${STATUS_TEXT[crack.status] || crack.status}`),
+          formatNumber(crack.length_mm, 1), formatNumber(crack.mean_width_mm, 2), formatNumber(crack.max_width_mm, 2),
+          degrees(crack.orientation_deg), crack.status === "grown" ? signed(crack.growth_mm) : "–",
+        ],
+      })),
+      attrs: { "data-testid": "crack-table", "aria-labelledby": "crack-table-heading" },
+      empty: "No crack found in this stage.",
+    }));
+  node.querySelectorAll('[data-testid="crack-row"]').forEach((row) => {
+    rows.set(Number(row.dataset.crack), row);
+    row.addEventListener("click", () => select(Number(row.dataset.crack), false));
+  });
+  return { node, select };
+}
+
+function residualSection(photos, stages) {
+  return [
+    h("h2", { id: "residuals-heading" }, "Control points"),
+    h("p", { class: "muted small" }, "How well each photo's control points fit its oriented camera: the root mean square of their residuals, in photo pixels and on the specimen."),
+    dataTable({
+      caption: "Control-point residuals per photo",
+      columns: [{ label: "Photo" }, { label: "Stage" }, { label: "Points", num: true }, { label: "RMS px", num: true },
+        { label: "RMS mm", num: true }, { label: "Worst point", num: true }],
+      rows: photos.map((photo) => {
+        const points = list(photo.points);
+        const worst = points.reduce((a, b) => ((b.error_px ?? -1) > (a ? a.error_px ?? -1 : -1) ? b : a), null);
+        return { attrs: { "data-testid": "residual-row" }, cells: [
+          h("span", { class: "filename", title: photo.image || "" }, photo.image || "–"),
+          (stages[photo.stage] || {}).label || "–",
+          String(points.length),
+          formatNumber(photo.rms_px, 2),
+          formatNumber(photo.rms_mm, 3),
+          worst ? `#${worst.index}: ${formatNumber(worst.error_px, 2)} px` : "–",
+        ] };
+      }),
+      attrs: { "data-testid": "residual-table" },
+      empty: "No photo in the report.",
+      scroll: false,
+    }),
+  ];
+}
+
+// -- Helpers ---------------------------------------------------------------------------------------
+
+function outputLabel(stages) {
+  const names = { "cracks.geojson": "Cracks (GeoJSON, specimen mm)", "cracks.csv": "Cracks (CSV)", "report.json": "Survey report (JSON)" };
+  return (name) => {
+    const m = /^stage_(\d+)_(rectified|overlay)\./.exec(name);
+    if (!m) return names[name] || name;
+    const label = (stages[Number(m[1])] || {}).label || `stage ${Number(m[1]) + 1}`;
+    return m[2] === "rectified" ? `${label}: rectified specimen (COG)` : `${label}: cracks drawn (PNG)`;
+  };
+}
+
+/** "200 × 150 mm" for a plate, "mesh beam.obj" for a mesh specimen. */
+function specimenSize(specimen) {
+  const sp = specimen || {};
+  return sp.mesh ? `mesh ${sp.mesh}` : `${formatNumber(sp.width_mm, 0)} × ${formatNumber(sp.height_mm, 0)} mm`;
+}
+
+function degrees(value) {
+  const text = formatNumber(value, 0);
+  return text === "–" ? text : `${text}°`;
+}
+
+function swatch(status) {
+  return h("span", { class: "swatch", style: `background:${STATUS_COLOURS[status] || "#888888"}`, "aria-hidden": "true" });
+}
+
+function countBy(cracks) {
+  const counts = {};
+  for (const crack of cracks) counts[crack.status] = (counts[crack.status] || 0) + 1;
+  return counts;
+}
+
+function signed(value) {
+  const text = formatNumber(value, 1);
+  return text === "–" || value < 0 ? text : `+${text}`;
+}
+
+function isPoint(p) {
+  return Array.isArray(p) && p.length >= 2 && Number.isFinite(p[0]) && Number.isFinite(p[1]);
+}
