@@ -5,8 +5,8 @@
  * #/crack-surveys/9). Every view renders into #app and registers cleanups (event stream, map, timers,
  * upload) that run when the route changes; after each await a view checks `view.alive` so a slow answer
  * never draws over the next page. The pages are ES modules (flights.js, flight.js, job.js, result-map.js,
- * crack-survey.js, crack-survey-new.js over lib.js); Leaflet is the classic script loaded before them and
- * used as the global `L`.
+ * crack-survey.js, crack-survey-new.js with crack-survey-specimen.js, mesh.js and mesh-plan.js, over
+ * lib.js); Leaflet is the classic script loaded before them and used as the global `L`.
  */
 
 import { ApiError, h, messageOf } from "./lib.js";

@@ -1,30 +1,25 @@
 /* New crack survey (#/crack-surveys/new): the camera, the specimen and the load stages with their photos.
  *
  * On each photo a click adds a control point; a point is dragged (or moved with the arrow keys) to place
- * it, and its position on the specimen (model X, Y in mm; Z = 0 on the plate) is typed beside it. Pixels
- * follow the API: (0, 0) is the centre of the photo's first pixel. Everything is sent as one multipart
- * request to POST /api/crack-surveys; a refusal (422) is shown next to the button and nothing entered is lost.
+ * it, and its position on the specimen is typed beside it: model X, Y in mm on a plate (Z = 0), X, Y, Z on a
+ * mesh model, where the point selected in the table can also take the coordinates of the vertex clicked in
+ * the mesh's plan view. Pixels follow the API: (0, 0) is the centre of the photo's first pixel. Everything
+ * (photos, and the mesh as `model`) is sent as one multipart request to POST /api/crack-surveys; a refusal
+ * (422) is shown next to the button and nothing entered is lost.
  */
 
+import { FieldError, specimenFields } from "./crack-survey-specimen.js";
+import { formatMm, planView } from "./mesh-plan.js";
 import { api, apiForm, breadcrumb, formatDate, h, messageOf } from "./lib.js";
 
-const MIN_POINTS = 4; // a plane-to-photo mapping has 8 degrees of freedom
 let lastId = 0;
 const uid = (prefix) => `${prefix}-${++lastId}`;
-
-/** A problem with what was typed, found before sending: its message and the field to go to. */
-class FieldError extends Error {
-  constructor(field, message) {
-    super(message);
-    this.field = field;
-  }
-}
 
 export function renderNewCrackSurvey(view, root) {
   document.title = "New crack survey · Fotoskhema";
   const camera = cameraFields(view);
   const specimen = specimenFields();
-  const stages = stageList(view);
+  const stages = stageList(view, specimen);
   const error = h("p", { class: "form-error", role: "alert", "data-testid": "survey-error" });
   const status = h("p", { class: "muted small", role: "status", "aria-live": "polite" });
   const submit = h("button", { type: "submit", class: "btn primary", "data-testid": "submit-survey" }, "Start the survey");
@@ -47,9 +42,11 @@ export function renderNewCrackSurvey(view, root) {
     }
     const body = new FormData();
     for (const file of stages.files()) body.append("files", file, file.name);
+    const model = specimen.modelFile();
+    if (model) body.append("model", model, model.name);
     body.append("options", JSON.stringify(options));
     submit.disabled = true;
-    status.textContent = "Uploading the photos…";
+    status.textContent = model ? "Uploading the photos and the model…" : "Uploading the photos…";
     try {
       const job = await apiForm("POST", "/api/crack-surveys", body);
       if (view.alive) window.location.hash = `#/crack-surveys/${job.id}`;
@@ -65,12 +62,12 @@ export function renderNewCrackSurvey(view, root) {
   root.append(
     breadcrumb(["Crack surveys", "#/crack-surveys"], ["New survey"]),
     h("div", { class: "page-head" }, h("h1", {}, "New crack survey"),
-      h("p", { class: "lead" }, "For each load stage, add its photos and click at least four control points on each: points of the plate whose position you know, in mm from its corner (X right, Y down the plate).")),
+      h("p", { class: "lead" }, "For each load stage, add its photos and click control points on each (at least four on a plate, six on a mesh model): points of the specimen whose position you know in the model's mm.")),
     form,
   );
 }
 
-// -- Camera and specimen ---------------------------------------------------------------------------
+// -- Camera ----------------------------------------------------------------------------------------
 
 function cameraFields(view) {
   const fromJob = h("input", { type: "radio", name: "camera-source", id: "camera-from-job", value: "job", checked: true, "data-testid": "camera-from-job" });
@@ -121,36 +118,9 @@ function cameraFields(view) {
   return { node, read };
 }
 
-function specimenFields() {
-  const field = (id, label, attrs) => {
-    const input = h("input", Object.assign({ id, type: "number", step: "any", min: 0, "data-testid": id }, attrs));
-    return { input, node: h("div", {}, h("label", { for: id }, label), input) };
-  };
-  const width = field("specimen-width", "Width (X) mm", { placeholder: "e.g. 200" });
-  const height = field("specimen-height", "Height (Y) mm", { placeholder: "e.g. 150" });
-  const resolution = field("mm-per-px", "Resolution, mm per pixel", { value: "0.2" });
-  function read() {
-    const value = ({ input }, what) => {
-      const n = Number(input.value);
-      if (input.value.trim() === "" || !Number.isFinite(n)) throw new FieldError(input, `Specimen: give ${what}.`);
-      return n;
-    };
-    return {
-      specimen: { width_mm: value(width, "its width in mm"), height_mm: value(height, "its height in mm") },
-      mm_per_px: value(resolution, "the resolution of the rectified images in mm per pixel"),
-    };
-  }
-  const node = h("fieldset", { class: "card", "data-testid": "specimen" },
-    h("legend", {}, "Specimen"),
-    h("p", { class: "muted small" }, "A plate: X to the right, Y down, from its top-left corner."),
-    h("div", { class: "field-row" }, width.node, height.node), resolution.node,
-    h("p", { class: "muted small" }, "Of the rectified images the cracks are found in: about a third of the finest crack's width."));
-  return { node, read };
-}
-
 // -- Load stages -----------------------------------------------------------------------------------
 
-function stageList(view) {
+function stageList(view, specimen) {
   const stages = [];
   const box = h("div", { class: "stage-list" });
   const add = h("button", { type: "button", class: "btn", "data-testid": "add-stage" }, "Add stage");
@@ -159,7 +129,7 @@ function stageList(view) {
     stages.forEach((stage, i) => stage.number(i, stages.length));
   }
   function addStage() {
-    const stage = stageEditor(view, taken, () => {
+    const stage = stageEditor(view, specimen, taken, () => {
       stages.splice(stages.indexOf(stage), 1);
       stage.node.remove();
       renumber();
@@ -181,7 +151,7 @@ function stageList(view) {
   };
 }
 
-function stageEditor(view, taken, onRemove) {
+function stageEditor(view, specimen, taken, onRemove) {
   const legend = h("legend", {});
   const labelId = uid("stage-label");
   const loadId = uid("stage-load");
@@ -203,7 +173,7 @@ function stageEditor(view, taken, onRemove) {
         note.textContent = `${file.name} is already in stage ${owner + 1}: each photo belongs to one stage.`;
         continue;
       }
-      const photo = photoEditor(view, file, () => {
+      const photo = photoEditor(view, file, specimen, () => {
         photos.splice(photos.indexOf(photo), 1);
         photo.node.remove();
       });
@@ -212,7 +182,10 @@ function stageEditor(view, taken, onRemove) {
     }
     files.value = ""; // the same file can be added again after it was removed
   });
-  remove.addEventListener("click", onRemove);
+  remove.addEventListener("click", () => {
+    photos.forEach((photo) => photo.dispose());
+    onRemove();
+  });
 
   function number(i, count) {
     if (!label.value || label.value === `Stage ${index + 1}`) label.value = `Stage ${i + 1}`; // not a typed label
@@ -240,7 +213,7 @@ function stageEditor(view, taken, onRemove) {
 
 // -- One photo and its control points --------------------------------------------------------------
 
-function photoEditor(view, file, onRemove) {
+function photoEditor(view, file, specimen, onRemove) {
   const url = URL.createObjectURL(file);
   view.cleanups.push(() => URL.revokeObjectURL(url));
   const img = h("img", { src: url, alt: `Photo ${file.name}: click to add a control point`, draggable: "false", "data-testid": "photo-image" });
@@ -249,20 +222,35 @@ function photoEditor(view, file, onRemove) {
   const size = h("span", { class: "muted small" });
   const count = h("p", { class: "point-count", "data-testid": "point-count", "aria-live": "polite" });
   const rows = h("tbody", {});
+  const table = h("table", { class: "table compact points" },
+    h("caption", { class: "visually-hidden" }, `Control points of ${file.name}`),
+    h("thead", {}, h("tr", {}, ["Point", "Pixel x, y", "X mm", "Y mm", "Z mm", ""].map((t) => h("th", { scope: "col", class: t === "Z mm" ? "z" : null }, t)))),
+    rows);
+  const planBox = h("div", { class: "plan-box" });
   const actual = h("input", { type: "checkbox", "data-testid": "actual-size" });
   const remove = h("button", { type: "button", class: "btn small danger", "data-testid": "remove-photo" }, "Remove photo");
-  const points = []; // { x, y (photo pixels), X, Y (typed mm, as text), marker, pixelText }
+  const points = []; // { x, y (photo pixels), X, Y, Z (typed mm, as text), marker, row, inputs, pixelText }
+  let selected = null; // the point a click on the plan view fills
+  let plan = null; // the mesh's plan and this photo's view of it
+  let shown; // the plan `planBox` shows (null: the hint to choose a model)
 
   img.addEventListener("load", () => { size.textContent = ` ${img.naturalWidth} × ${img.naturalHeight} px`; });
   img.addEventListener("click", (event) => {
     if (!img.naturalWidth) return;
-    points.push({ ...pixelAt(img, event.clientX, event.clientY), X: "", Y: "" });
+    const point = { ...pixelAt(img, event.clientX, event.clientY), X: "", Y: "", Z: "" };
+    points.push(point);
+    selected = point;
     render();
-    rows.lastElementChild.querySelector("input").focus({ preventScroll: true });
+    point.inputs.X.focus({ preventScroll: true });
   });
   actual.addEventListener("change", () => frame.classList.toggle("actual", actual.checked));
-  remove.addEventListener("click", () => {
+  const stopFollowing = specimen.subscribe(followSpecimen);
+  const dispose = () => {
     URL.revokeObjectURL(url);
+    stopFollowing();
+  };
+  remove.addEventListener("click", () => {
+    dispose();
     onRemove();
   });
 
@@ -271,35 +259,89 @@ function photoEditor(view, file, onRemove) {
     point.marker.style.top = `${((point.y + 0.5) / img.naturalHeight) * 100}%`;
     point.pixelText.textContent = `${point.x.toFixed(1)}, ${point.y.toFixed(1)}`;
   }
+  function select(point) {
+    if (!points.includes(point) || point === selected) return; // a deleted row's click still bubbles here
+    selected = point;
+    showSelection();
+  }
+  function showSelection() {
+    for (const point of points) {
+      point.row.classList.toggle("selected", point === selected);
+      point.marker.classList.toggle("selected", point === selected);
+    }
+    if (plan) plan.view.redraw();
+  }
   function render() {
+    if (!points.includes(selected)) selected = null;
     markers.replaceChildren(...points.map((point, k) => {
-      point.marker = marker(img, point, k, place);
+      point.marker = marker(img, point, k, place, () => select(point));
       return point.marker;
     }));
-    rows.replaceChildren(...points.map((point, k) => pointRow(point, k, () => {
-      points.splice(k, 1);
-      render();
+    rows.replaceChildren(...points.map((point, k) => pointRow(point, k, {
+      onDelete: () => {
+        points.splice(k, 1);
+        render();
+      },
+      onSelect: () => select(point),
+      onInput: () => plan && plan.view.redraw(),
     })));
     points.forEach(place);
+    showSelection();
+    countPoints();
+  }
+  function countPoints() {
     const n = points.length;
-    count.textContent = `${n} control point${n === 1 ? "" : "s"}${n < MIN_POINTS ? `: at least ${MIN_POINTS} are needed` : ""}`;
-    count.classList.toggle("warn", n < MIN_POINTS);
+    const needed = specimen.minPoints();
+    count.textContent = `${n} control point${n === 1 ? "" : "s"}${n < needed ? `: at least ${needed} are needed` : ""}`;
+    count.classList.toggle("warn", n < needed);
+  }
+  function followSpecimen() {
+    const mesh = specimen.kind() === "mesh";
+    node.classList.toggle("mesh", mesh);
+    table.classList.toggle("with-z", mesh);
+    planBox.hidden = !mesh;
+    const meshPlan = specimen.plan();
+    if (meshPlan !== shown) {
+      shown = meshPlan;
+      plan = meshPlan && { of: meshPlan, view: planView(meshPlan, { name: file.name, points: planPoints, onPick: pick }) };
+      planBox.replaceChildren(plan ? plan.view.node
+        : h("p", { class: "muted small" }, "Choose the mesh model under Specimen to pick the points' X, Y, Z on it."));
+    }
+    countPoints();
+  }
+  function planPoints() {
+    const typed = (text) => (String(text).trim() === "" ? NaN : Number(text));
+    return points.map((point, k) => ({ label: String(k), model: [typed(point.X), typed(point.Y), typed(point.Z)], selected: point === selected }));
+  }
+  function pick(vertex) {
+    if (!selected) {
+      plan.view.say("Select a control point first: click its row in the table.");
+      return;
+    }
+    const xyz = plan.of.vertex(vertex).map(formatMm);
+    ["X", "Y", "Z"].forEach((axis, a) => {
+      selected[axis] = xyz[a];
+      selected.inputs[axis].value = xyz[a];
+    });
+    plan.view.say(`Point ${points.indexOf(selected)} ← vertex ${vertex}: ${xyz.join(", ")} mm`);
+    plan.view.redraw();
   }
   render();
 
   function read(where) {
+    const mesh = specimen.kind() === "mesh";
     return {
       image: file.name,
       control_points: points.map((point, k) => {
-        const mm = (value, input, axis) => {
+        const mm = (axis) => {
+          const value = point[axis];
           if (String(value).trim() === "" || !Number.isFinite(Number(value))) {
-            throw new FieldError(input, `${where}, ${file.name}, point ${k}: give its model ${axis} in mm.`);
+            throw new FieldError(point.inputs[axis], `${where}, ${file.name}, point ${k}: give its model ${axis} in mm.`);
           }
           return Number(value);
         };
-        const [inputX, inputY] = rows.children[k].querySelectorAll("input");
         const round = (v) => Math.round(v * 100) / 100;
-        return { pixel: [round(point.x), round(point.y)], model: [mm(point.X, inputX, "X"), mm(point.Y, inputY, "Y"), 0] };
+        return { pixel: [round(point.x), round(point.y)], model: [mm("X"), mm("Y"), mesh ? mm("Z") : 0] };
       }),
     };
   }
@@ -309,13 +351,12 @@ function photoEditor(view, file, onRemove) {
       h("span", { class: "row" }, h("label", { class: "check small" }, actual, " Actual size"), remove)),
     h("div", { class: "photo-grid" },
       h("div", { class: "photo-scroll" }, frame),
-      h("div", { class: "point-panel" }, count,
-        h("table", { class: "table compact points" },
-          h("caption", { class: "visually-hidden" }, `Control points of ${file.name}`),
-          h("thead", {}, h("tr", {}, ["Point", "Pixel x, y", "X mm", "Y mm", ""].map((t) => h("th", { scope: "col" }, t)))),
-          rows),
-        h("p", { class: "muted small" }, "Click the photo to add a point; drag a point, or focus it and use the arrow keys, to move it."))));
-  return { node, file, read };
+      h("div", { class: "point-panel" }, count, table,
+        h("p", { class: "muted small" }, "Click the photo to add a point; drag a point, or focus it and use the arrow keys, to move it.",
+          h("span", { class: "mesh-only" }, " To take a vertex's X, Y, Z: click the point's row, then the vertex in the plan view.")),
+        planBox)));
+  followSpecimen();
+  return { node, file, read, dispose };
 }
 
 /** Photo pixel (x, y) at viewport point (clientX, clientY) over `img`: (0, 0) is the centre of its first pixel. */
@@ -330,13 +371,16 @@ function onPhoto(img, x, y) {
   return { x: clamp(x, img.naturalWidth), y: clamp(y, img.naturalHeight) };
 }
 
-/** A draggable, keyboard-movable marker of control point `k` on `img`; `moved(point)` redraws it. */
-function marker(img, point, k, moved) {
+/** A draggable, keyboard-movable marker of control point `k` on `img`; `moved(point)` redraws it, `onSelect()`
+ * makes it the selected point. */
+function marker(img, point, k, moved, onSelect) {
   const node = h("button", { type: "button", class: "marker", "data-testid": "marker", "aria-label": `Control point ${k}: drag or use the arrow keys to move it` },
     h("span", {}, String(k)));
+  node.addEventListener("focus", onSelect);
   node.addEventListener("pointerdown", (event) => {
     event.preventDefault();
     node.setPointerCapture(event.pointerId);
+    onSelect();
   });
   node.addEventListener("pointermove", (event) => {
     if (!node.hasPointerCapture(event.pointerId)) return;
@@ -354,15 +398,22 @@ function marker(img, point, k, moved) {
   return node;
 }
 
-function pointRow(point, k, onDelete) {
+/** The table row of control point `k`: its pixel and its model X, Y, Z (the Z cell shown on a mesh only). */
+function pointRow(point, k, { onDelete, onSelect, onInput }) {
   const input = (axis) => {
     const node = h("input", { type: "number", step: "any", value: point[axis], "aria-label": `Point ${k} model ${axis} mm`,
       "data-testid": `point-model-${axis.toLowerCase()}` });
-    node.addEventListener("input", () => { point[axis] = node.value; });
+    node.addEventListener("input", () => {
+      point[axis] = node.value;
+      onInput();
+    });
     return node;
   };
+  point.inputs = { X: input("X"), Y: input("Y"), Z: input("Z") };
   point.pixelText = h("span", { class: "mono" });
-  return h("tr", { "data-testid": "point-row" },
-    h("td", {}, String(k)), h("td", {}, point.pixelText), h("td", {}, input("X")), h("td", {}, input("Y")),
+  point.row = h("tr", { "data-testid": "point-row", onclick: onSelect, onfocusin: onSelect },
+    h("td", {}, String(k)), h("td", {}, point.pixelText), h("td", {}, point.inputs.X), h("td", {}, point.inputs.Y),
+    h("td", { class: "z" }, point.inputs.Z),
     h("td", {}, h("button", { type: "button", class: "btn small", "aria-label": `Delete point ${k}`, "data-testid": "point-delete", onclick: onDelete }, "×")));
+  return point.row;
 }

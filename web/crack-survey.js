@@ -5,9 +5,10 @@
  * status colour; a slider picks the stage, a table lists its cracks (a row shows its crack on the map), and
  * the control points' residuals say how well each photo was oriented.
  *
- * The report gives crack paths in specimen mm (X right, Y down the plate) with raster pixel (col, row)
- * centred on (X, Y) / mm_per_px; on the tile grid that pixel spans [col, col + 1], and CRS.Simple shows the
- * grid with y negated.
+ * The report gives crack paths in mm on the rectification plane (a plate's X right, Y down; a mesh model's
+ * plane, `report.plane`, with its origin and axes in model mm) with raster pixel (col, row) centred on
+ * (x, y) / mm_per_px; on the tile grid that pixel spans [col, col + 1], and CRS.Simple shows the grid with y
+ * negated. On a mesh, lengths and widths are measured along its surface, not on the plane.
  */
 
 import { api, dataTable, downloadList, factList, formatDate, formatNumber, h, list, statusBadge } from "./lib.js";
@@ -89,9 +90,13 @@ async function showSurvey(view, jobId, card, residualCard) {
   const stagePanel = h("div", { class: "control" });
   const legend = h("div", { class: "control" });
   const tableBox = h("div", { class: "crack-table" });
+  const plane = meshPlane(report);
   card.replaceChildren(
     h("div", { class: "row spread" }, heading(), h("span", { class: "muted small", "data-testid": "specimen" },
       `Specimen ${specimenSize(report.specimen)} · ${formatNumber(report.mm_per_px, 3)} mm/px`)),
+    // replaceChildren would print a null
+    ...(plane ? [h("p", { class: "muted small", "data-testid": "mesh-note" }, `The mesh model is shown rectified onto ${plane.how}; `
+      + "crack lengths and widths are measured along its surface, so a crack on a curve is longer than it looks here.")] : []),
     h("div", { class: "result-grid" }, mapNode, h("div", { class: "map-controls" }, stagePanel, legend)),
     tableBox,
     h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(stages))),
@@ -106,7 +111,7 @@ async function showSurvey(view, jobId, card, residualCard) {
   function show(s) {
     current = s;
     const stage = stages[s];
-    stagePanel.replaceChildren(slider, stageFacts(stage, stages[s - 1], jobId));
+    stagePanel.replaceChildren(slider, stageFacts(stage, stages[s - 1], jobId, plane));
     legend.replaceChildren(...legendList(list(stage.cracks)));
     cracks.draw(list(stage.cracks));
     Object.assign(table, crackTable(stage, (id) => cracks.select(id)));
@@ -139,8 +144,8 @@ function stageSlider(stages, onStage) {
   return h("div", {}, h("label", { for: "stage-slider" }, "Load stage ", output), slider);
 }
 
-/** The stage's name, load and figures, and what changed since the stage before. */
-function stageFacts(stage, previous, jobId) {
+/** The stage's name, load and figures (and a mesh's rectification plane), and what changed since the stage before. */
+function stageFacts(stage, previous, jobId, plane) {
   const cracks = list(stage.cracks);
   const counts = countBy(cracks);
   let changes;
@@ -165,6 +170,7 @@ function stageFacts(stage, previous, jobId) {
       ["Mean width", formatNumber(stage.mean_width_mm, 2, "mm")],
       ["Max width", formatNumber(stage.max_width_mm, 2, "mm")],
       ["Seen", formatNumber(100 * stage.coverage, 0, "%")],
+      ...(plane ? plane.rows : []),
     ]),
     stage.overlay ? h("p", { class: "small" }, h("a", {
       href: `/api/jobs/${jobId}/outputs/${encodeURIComponent(stage.overlay)}`, download: stage.overlay, "data-testid": "stage-overlay",
@@ -289,10 +295,27 @@ function outputLabel(stages) {
   };
 }
 
-/** "200 × 150 mm" for a plate, "mesh beam.obj" for a mesh specimen. */
+/** "200 × 150 mm" for a plate, "mesh model beam.obj" for a mesh specimen. */
 function specimenSize(specimen) {
   const sp = specimen || {};
-  return sp.mesh ? `mesh ${sp.mesh}` : `${formatNumber(sp.width_mm, 0)} × ${formatNumber(sp.height_mm, 0)} mm`;
+  return sp.mesh ? `mesh model ${sp.mesh}` : `${formatNumber(sp.width_mm, 0)} × ${formatNumber(sp.height_mm, 0)} mm`;
+}
+
+/** A mesh survey's rectification plane: how it was chosen and its fact rows; null for a plate. */
+function meshPlane(report) {
+  const specimen = report.specimen || {};
+  const plane = report.plane;
+  if (!specimen.mesh || !plane) return null;
+  const vector = (v, digits) => (Array.isArray(v) && v.length === 3 && v.every(Number.isFinite)
+    ? `(${v.map((c) => c.toFixed(digits)).join(", ")})` : "–");
+  return {
+    how: specimen.plane ? "the plane through the three points given" : "its best-fit plane",
+    rows: [
+      ["Plane origin", `${vector(plane.origin_mm, 1)} mm`, { "data-testid": "plane-origin" }],
+      ["Plane x axis", vector(plane.x_axis, 3), { "data-testid": "plane-x-axis" }],
+      ["Plane y axis", vector(plane.y_axis, 3), { "data-testid": "plane-y-axis" }],
+    ],
+  };
 }
 
 function degrees(value) {
