@@ -14,8 +14,9 @@ Scenes (``tests/crack_scenes.py``, written to a temporary folder): a 400 x 300 m
   ``cv2.warpPerspective`` with the plane's homography (Lanczos too). OpenCV has no mesh rectification,
   so the panel row has no reference. The mean absolute grey difference between the two plate rasters
   tells that they render the same thing.
-- **Detection and measurement**: ``detect_cracks`` and ``measure_cracks`` on the rectified plate, seconds
-  per raster megapixel (no reference: OpenCV has no crack detector).
+- **Detection and measurement**: the service's tiled detector (``detect_cracks.detect_in_tiles``) and
+  ``measure_cracks`` on the rectified plate, seconds per raster megapixel and peak memory (no reference:
+  OpenCV has no crack detector).
 
 Every run is in its own spawned child (peak RSS = that run's VmHWM). Ratios are ours / OpenCV.
 """
@@ -105,11 +106,16 @@ def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
     import numpy as np
 
     from workers.algorithms.crack_geometry import measure_cracks
-    from workers.algorithms.cracks import detect_cracks
+    from workers.algorithms.cracks import load_crack_model
+    from workers.config import CrackSurveyConfig
+    from workers.stages.detect_cracks import background_px, dark_enough, detect_in_tiles
 
     raster = np.load(raster_file)
+    model = load_crack_model()
+    min_contrast = CrackSurveyConfig.model_fields["min_crack_contrast"].default
     started = time.perf_counter()
-    mask = detect_cracks(raster)
+    mask = detect_in_tiles(raster, model, model.low, model.high)  # as the service runs it, tile by tile
+    mask = dark_enough(raster, mask, min_contrast, background_px(mm_per_px))
     detected = time.perf_counter()
     cracks = measure_cracks(mask, mm_per_px, min_length_mm=1.0)
     measured = time.perf_counter()

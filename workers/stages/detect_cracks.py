@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import cv2
@@ -9,15 +10,37 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from workers.algorithms.crack_geometry import darkening
-from workers.algorithms.cracks import detect_cracks, to_gray
+from workers.algorithms.cracks import (
+    CrackModel,
+    crack_probability,
+    hysteresis_threshold,
+    load_crack_model,
+    remove_short_components,
+    to_gray,
+)
+from workers.algorithms.tiling import map_in_tiles
 from workers.config import CrackSurveyConfig
 from workers.pipeline import PipelineError
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
+
+# The detector runs over tiles of the rectified raster (its features hold ~200 B per pixel): 1024 px kept,
+# 128 px of context around each, past the reach of its widest filter (3 sigma of the illumination model
+# at half resolution, 120 px) and of its network's receptive field.
+TILE_PX = 1024
+TILE_MARGIN_PX = 128
 
 
 def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``cracks/stage_NN_mask.npy`` per load stage: (H, W) bool crack pixels inside what the photos see."""
     margin_px = int(np.ceil(cfg.edge_margin_mm / cfg.mm_per_px))
+    try:
+        model = load_crack_model()
+    except (OSError, ValueError) as exc:
+        raise PipelineError(f"the crack detector's weights cannot be used: {exc}") from None
+    low = model.low if cfg.threshold_low is None else cfg.threshold_low
+    high = model.high if cfg.threshold_high is None else cfg.threshold_high
+    if low > high:
+        raise PipelineError(f"options.threshold_low ({low}) is above threshold_high ({high})")
     pixels = []
     for s in range(len(cfg.stages)):
         progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
@@ -25,16 +48,19 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         # unseen parts get the seen part's median: a hard black border would look like a crack to the detector
         filled = image.copy()
         filled[~seen] = np.median(image[seen], axis=0).astype(np.uint8)
-        try:
-            mask = detect_cracks(filled, low=cfg.threshold_low, high=cfg.threshold_high)
-        except ValueError as exc:
-            raise PipelineError(f"options.threshold_low/high: {exc}") from None
-        mask = dark_enough(filled, mask & _trusted(seen, margin_px), cfg.min_crack_contrast,
-                           background_px(cfg.mm_per_px))
+        mask = dark_enough(filled, detect_in_tiles(filled, model, low, high) & _trusted(seen, margin_px),
+                           cfg.min_crack_contrast, background_px(cfg.mm_per_px))
         ws.save_crack_mask(s, mask)
         pixels.append(int(mask.sum()))
     progress(1.0, f"{len(cfg.stages)} stage(s)")
     return {"stages": len(cfg.stages), "crack_pixels": pixels}
+
+
+def detect_in_tiles(image: np.ndarray, model: CrackModel, low: float, high: float) -> np.ndarray:
+    """(H, W) bool crack mask of (H, W, 3) BGR ``image``: the model's probability over tiles, then hysteresis
+    and the model's minimum extent over the whole raster (a crack may cross tiles)."""
+    probability = map_in_tiles(image, partial(crack_probability, model=model), TILE_PX, TILE_MARGIN_PX)
+    return remove_short_components(hysteresis_threshold(probability, low, high), model.min_length_px)
 
 
 def background_px(mm_per_px: float) -> float:
