@@ -14,8 +14,12 @@ from tests.conftest import shared_data
 from tests.unit.test_crack_geometry import band_mask
 from workers.algorithms.cracks import (
     FEATURE_VERSION,
+    NET_LAYERS,
     CrackModel,
+    CrackNet,
     ToleranceCounts,
+    avg_pool2,
+    conv2d,
     crack_probability,
     detect_cracks,
     hysteresis_threshold,
@@ -23,6 +27,7 @@ from workers.algorithms.cracks import (
     pixel_features,
     remove_short_components,
     tolerance_counts,
+    upsample2,
 )
 
 H, W = 320, 480
@@ -143,7 +148,9 @@ def test_probability_map_shape_and_inputs() -> None:
     assert grey.min() >= 0 and grey.max() <= 1
     np.testing.assert_allclose(grey, colour, atol=1e-5)
     assert grey[bands[0]].mean() > 0.5 > grey[~within(bands[0], 4)].mean()
-    assert pixel_features(image).shape == (H, W, 21)
+    assert pixel_features(image).shape == (H, W, 44)
+    odd = crack_probability(image[:101, :77])  # sides that are not multiples of 4 are padded, then cropped
+    assert odd.shape == (101, 77) and np.isfinite(odd).all()
     with pytest.raises(ValueError):
         crack_probability(np.zeros((H, W, 4), np.uint8))
 
@@ -180,19 +187,104 @@ def test_model_round_trip_and_version_check() -> None:
     arrays = model.to_arrays()
     again = CrackModel.from_arrays(arrays)
     assert again.low == model.low and again.min_length_px == model.min_length_px
+    np.testing.assert_array_equal(again.net.layers["up_full"][0], model.net.layers["up_full"][0])
     np.testing.assert_array_equal(again.stage2.w1, model.stage2.w1)
     with pytest.raises(ValueError, match="feature version"):
         CrackModel.from_arrays({**arrays, "feature_version": np.array(FEATURE_VERSION + 1)})
     with pytest.raises(ValueError):
+        model.net.predict(np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(ValueError):
         model.stage1.predict(np.zeros((4, 4, 3), np.float32))
     size = sum(a.nbytes for a in arrays.values())
-    assert size < 50_000  # small enough to commit
+    assert size < 200_000  # small enough to commit
 
 
-# Measured with the committed model: precision 0.834, recall 0.689, F1 0.755 (nested CV on 001-040: 0.883).
-# Below the 0.80 goal: 041-060 hold fainter cracks, wider and offset labels, and 042's mask does not
-# match its image (a vertical crack that is not in the photo). Asserted with a 0.025 margin.
-HELD_OUT_F1 = 0.73
+def dilated(kernel: np.ndarray, dilation: int) -> np.ndarray:
+    """A (k, k) kernel with ``dilation - 1`` zeros between its taps."""
+    k = kernel.shape[0]
+    out = np.zeros((dilation * (k - 1) + 1,) * 2, kernel.dtype)
+    out[::dilation, ::dilation] = kernel
+    return out
+
+
+@pytest.mark.parametrize(("k", "dilation"), [(1, 1), (3, 1), (3, 2), (3, 4)])
+def test_conv2d_matches_a_per_channel_correlation(k: int, dilation: int) -> None:
+    rng = np.random.default_rng(k + dilation)
+    x = rng.standard_normal((13, 17, 3)).astype(np.float32)
+    weight = rng.standard_normal((k, k, 3, 2)).astype(np.float32)
+    bias = np.array([0.5, -1.0], np.float32)
+    expected = np.stack([bias[o] + sum(ndi.correlate(x[..., i].astype(np.float64),
+                                                     dilated(weight[:, :, i, o], dilation), mode="constant")
+                                       for i in range(3)) for o in range(2)], axis=-1)
+    np.testing.assert_allclose(conv2d(x, weight, bias, dilation), expected, atol=1e-4)
+    with pytest.raises(ValueError):
+        conv2d(x[..., :2], weight, bias)
+
+
+def test_pooling_and_upsampling_follow_torch_conventions() -> None:
+    ramp = np.arange(4, dtype=np.float32)[:, None, None] * np.ones((4, 2, 1), np.float32)
+    # torch.nn.functional.interpolate(scale_factor=2, mode="bilinear", align_corners=False) of 0, 1, 2, 3
+    np.testing.assert_allclose(upsample2(ramp)[:, 0, 0], [0, 0.25, 0.75, 1.25, 1.75, 2.25, 2.75, 3])
+    assert upsample2(ramp).shape == (8, 4, 1)
+    np.testing.assert_allclose(upsample2(ramp)[:, 1, 0], upsample2(ramp)[:, 0, 0])
+    np.testing.assert_allclose(avg_pool2(ramp)[:, 0, 0], [0.5, 2.5])
+
+
+def random_net(rng: np.random.Generator, n_features: int = 5, widths: tuple[int, int, int] = (4, 6, 3)) -> CrackNet:
+    """A :class:`CrackNet` of random weights and the layer shapes that the training script builds."""
+    a, b, c = widths
+    shapes = {"enc0": (n_features, a), "enc1": (a, a), "half0": (a, b), "half1": (b, b), "quarter0": (b, b),
+              "quarter1": (b, b), "quarter2": (b, b), "up_half": (2 * b, b), "up_full": (a + b, c), "head": (c, 1)}
+    layers = {name: (rng.normal(0, 0.5, (k, k, *shapes[name])).astype(np.float32),
+                     rng.normal(0, 0.1, shapes[name][1]).astype(np.float32)) for name, k, _ in NET_LAYERS}
+    return CrackNet(rng.normal(0, 1, n_features).astype(np.float32), rng.uniform(0.5, 2, n_features).astype(np.float32),
+                    layers)
+
+
+def test_network_forward_pass_is_translation_equivariant_and_local() -> None:
+    """A crack seen at another place gives the same logits there (away from the borders), and a far change
+    leaves a pixel's logit alone: the NumPy convolutions, pooling and upsampling are wired consistently."""
+    rng = np.random.default_rng(5)
+    net = random_net(rng)
+    x = rng.standard_normal((192, 200, 5)).astype(np.float32)
+    z = net.logits(x)
+    assert z.shape == (192, 200) and np.isfinite(z).all()
+    shifted = net.logits(np.roll(x, (8, 12), axis=(0, 1)))  # a shift by whole quarter-resolution pixels
+    np.testing.assert_allclose(shifted[88:112, 92:116], z[80:104, 80:104], atol=1e-4)
+    far = x.copy()
+    far[:, 100:] += 5.0  # the receptive field reaches ~45 px
+    np.testing.assert_allclose(net.logits(far)[:, :48], z[:, :48], atol=1e-5)
+    assert not np.allclose(net.logits(far)[:, 60:], z[:, 60:], atol=1e-3)
+
+
+def test_network_matches_its_pytorch_twin(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The NumPy forward pass against the training script's PyTorch network (skips without PyTorch)."""
+    torch = pytest.importorskip("torch")
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "train_crack_model.py"
+    spec = importlib.util.spec_from_file_location("train_crack_model", path)
+    assert spec is not None and spec.loader is not None
+    train = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, train)  # dataclasses look their module up there
+    spec.loader.exec_module(train)
+    torch.manual_seed(0)
+    twin = train.TorchCrackNet(7, (5, 6, 4)).eval()
+    with torch.no_grad():
+        twin.mean.normal_()
+        twin.scale.uniform_(0.5, 2.0)
+    x = np.random.default_rng(1).standard_normal((36, 44, 7)).astype(np.float32)
+    with torch.no_grad():
+        expected = twin(torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))[None])[0].numpy()
+    np.testing.assert_allclose(twin.to_numpy().logits(x), expected, atol=1e-4)
+
+
+# Measured with the committed model: precision 0.830, recall 0.715, F1 0.768 (0.813 without 042; cross-validated
+# on 001-040: 0.893). Below the 0.80 goal: 041-060 hold fainter cracks, wider and offset labels, and 042's mask
+# does not match its image (a vertical crack that is not in the photo). Asserted with a 0.023 margin.
+HELD_OUT_F1 = 0.745
 
 
 @pytest.mark.realdata
