@@ -190,3 +190,13 @@ def test_bad_crack_survey_requests_are_422_and_store_nothing(client: TestClient,
 def test_unknown_crack_survey_is_404(client: TestClient) -> None:
     assert client.get("/api/crack-surveys/999").status_code == 404
     assert client.post("/api/crack-surveys", data={"options": "{not json"}).status_code == 422
+
+
+@pytest.mark.parametrize(("seed", "angle"), [(0, 35.0), (1, 55.0)])
+def test_other_specimens_and_angles(client: TestClient, api_settings, tmp_path: Path, seed: int, angle: float) -> None:
+    """Specimens and angles the detector and thresholds were never looked at with: the same tolerances."""
+    other = make_crack_survey(tmp_path / "other", [(angle, 20.0)], seed=seed)
+    result = survey(client, api_settings, other, (0,))
+    print(*check_against_truth(result, other), sep="\n")
+    second = result["comparisons"][0]
+    assert (second["new"], second["grown"], second["unchanged"]) == (2, 1, 4)
