@@ -12,6 +12,7 @@ from scipy import ndimage as ndi
 
 from tests.conftest import shared_data
 from tests.unit.test_crack_geometry import band_mask
+from workers.algorithms.crack_geometry import darkening
 from workers.algorithms.cracks import (
     FEATURE_VERSION,
     NET_LAYERS,
@@ -26,6 +27,7 @@ from workers.algorithms.cracks import (
     load_crack_model,
     pixel_features,
     remove_short_components,
+    to_gray,
     tolerance_counts,
     upsample2,
 )
@@ -281,20 +283,46 @@ def test_network_matches_its_pytorch_twin(monkeypatch: pytest.MonkeyPatch) -> No
     np.testing.assert_allclose(twin.to_numpy().logits(x), expected, atol=1e-4)
 
 
-# Measured with the committed model: precision 0.830, recall 0.715, F1 0.768 (0.813 without 042; cross-validated
-# on 001-040: 0.893). Below the 0.80 goal: 041-060 hold fainter cracks, wider and offset labels, and 042's mask
-# does not match its image (a vertical crack that is not in the photo). Asserted with a 0.023 margin.
+# Measured with the committed model on all 20 held-out images: precision 0.830, recall 0.715, F1 0.768; on the
+# 19 whose labels pass the audit below (all but 042): precision 0.873, recall 0.761, F1 0.813. Cross-validated on
+# 001-040: 0.889. Asserted with margins of about 0.02 and 0.01.
 HELD_OUT_F1 = 0.745
+HELD_OUT_F1_AUDITED = 0.80
+MIN_LABEL_DARKENING = 0.02  # a label must mark pixels at least 2% darker than the road around them
+
+
+def label_darkening(image: np.ndarray, truth: np.ndarray) -> float:
+    """Median of how much darker the labelled pixels are than the unlabelled ones around them (8 px)."""
+    return float(np.median(darkening(to_gray(image), truth, background_px=8.0)[truth]))
+
+
+def load_cfd(index: int) -> tuple[np.ndarray, np.ndarray]:
+    data = shared_data("crack_cfd")
+    image = cv2.imread(str(data / "image" / f"{index:03d}.jpg"), cv2.IMREAD_COLOR)
+    truth = cv2.imread(str(data / "mask_png" / f"{index:03d}.png"), cv2.IMREAD_GRAYSCALE)
+    assert image is not None and truth is not None, index
+    return image, truth > 0
+
+
+@pytest.mark.realdata
+def test_crackforest_labels_mark_dark_lines_but_one() -> None:
+    """A label audit that needs no detector: every CrackForest mask lies on pixels 4-19% darker than the road
+    next to them, except 042's, which is no darker at all (its vertical crack is not in the photo)."""
+    darkness = {index: label_darkening(*load_cfd(index)) for index in range(1, 61)}
+    assert [i for i, d in darkness.items() if d < MIN_LABEL_DARKENING] == [42], darkness
+    assert min(d for i, d in darkness.items() if i != 42) > 0.04
 
 
 @pytest.mark.realdata
 def test_crackforest_held_out_images() -> None:
-    """Images 041-060, never used for training or tuning; pooled 2-px-tolerant precision/recall/F1."""
-    data = shared_data("crack_cfd")
-    total = ToleranceCounts(0, 0, 0, 0)
+    """Images 041-060, never used for training or tuning; pooled 2-px-tolerant precision/recall/F1, on all of
+    them and on those whose labels pass the audit."""
+    total = audited = ToleranceCounts(0, 0, 0, 0)
     for index in range(41, 61):
-        image = cv2.imread(str(data / "image" / f"{index:03d}.jpg"), cv2.IMREAD_COLOR)
-        truth = cv2.imread(str(data / "mask_png" / f"{index:03d}.png"), cv2.IMREAD_GRAYSCALE)
-        assert image is not None and truth is not None, index
-        total = total + tolerance_counts(detect_cracks(image), truth > 0, tolerance_px=2.0)
+        image, truth = load_cfd(index)
+        counts = tolerance_counts(detect_cracks(image), truth, tolerance_px=2.0)
+        total = total + counts
+        if label_darkening(image, truth) >= MIN_LABEL_DARKENING:
+            audited = audited + counts
     assert total.f1 >= HELD_OUT_F1, (total.precision, total.recall, total.f1)
+    assert audited.f1 >= HELD_OUT_F1_AUDITED, (audited.precision, audited.recall, audited.f1)
