@@ -72,7 +72,7 @@ def run_ours(scene: dict[str, Any], mm_per_px: float, out: str) -> dict[str, Any
     R, C = np.array(scene["R"]), np.array(scene["C"])
     started = time.perf_counter()
     surface = _surface(scene, mm_per_px, C)
-    raster, mask = compose_stage(camera, [(image, R, C)], surface, "best")
+    raster, mask, _ = compose_stage(camera, [(image, R, C)], surface, "best")
     seconds = time.perf_counter() - started
     np.save(out, raster)
     return {"ok": True, "seconds": seconds, "peak_mib": peak_rss_mib(), "size": list(raster.shape[1::-1]),

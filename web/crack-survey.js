@@ -97,6 +97,8 @@ async function showSurvey(view, jobId, card, residualCard) {
     // replaceChildren would print a null
     ...(plane ? [h("p", { class: "muted small", "data-testid": "mesh-note" }, `The mesh model is shown rectified onto ${plane.how}; `
       + "crack lengths and widths are measured along its surface, so a crack on a curve is longer than it looks here.")] : []),
+    ...(Array.isArray(report.warnings) ? report.warnings : []).filter((text) => typeof text === "string")
+      .map((text) => h("p", { class: "alert warning", role: "status", "data-testid": "survey-warning" }, text)),
     h("div", { class: "result-grid" }, mapNode, h("div", { class: "map-controls" }, stagePanel, legend)),
     tableBox,
     h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(stages))),

@@ -152,6 +152,16 @@ def test_two_stage_survey_made_and_read_in_the_browser(watched_page, live_servic
     expect(selected).to_have_class(re.compile(r"\bcrack-new\b"))
     page.wait_for_load_state("networkidle")
     _screenshot(page, "crack_survey_stage2")
+    expect(page.get_by_test_id("survey-warning")).to_have_count(0)  # the 0.25 mm raster suits these photos
+
+    def with_warning(route: Any) -> None:  # the report of a survey rasterised far finer than its photos
+        answer = route.fetch().json()
+        answer["result"]["warnings"] = ["stage '10 kN': the photos resolve 0.3 mm per pixel on the specimen"]
+        route.fulfill(json=answer)
+
+    page.route(re.compile(r"/api/crack-surveys/\d+$"), with_warning)
+    page.reload()
+    expect(page.get_by_test_id("survey-warning")).to_contain_text("the photos resolve 0.3 mm per pixel")
     watch.assert_clean(live_service.url)
 
 

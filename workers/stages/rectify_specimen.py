@@ -39,19 +39,22 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     paths = {f["name"]: f["path"] for f in ws.load_inputs()}
     surface = build_surface(ws, cfg, np.mean([C for _, C in poses.values()], axis=0))
     ws.save_surface(surface.frame.origin, surface.frame.axes, surface.height, surface.mm_per_px)
-    coverage = []
+    coverage: list[float] = []
+    photo_mm_per_px: list[float] = []
     for s, stage in enumerate(cfg.stages):
         progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
         views = [(_read(paths[p.image]), *poses[p.image]) for p in stage.photos]
-        image, mask = compose_stage(camera, views, surface, cfg.compose)
+        image, mask, density = compose_stage(camera, views, surface, cfg.compose)
         if not mask.any():
             raise PipelineError(f"stage {stage.label!r}: its photos see no part of the specimen; "
                                 "check the control points' model coordinates")
         ws.save_rectified(s, image, mask)
         coverage.append(round(float(mask.mean()), 4))
+        # the photos' own sampling on the specimen: a raster much finer than this shows resampled grain
+        photo_mm_per_px.append(round(float(np.median(1.0 / np.sqrt(density[mask]))), 4))
     progress(1.0, f"{len(cfg.stages)} stage(s) rectified")
     return {"stages": len(cfg.stages), "width_px": surface.shape[1], "height_px": surface.shape[0],
-            "coverage": coverage, "plane": surface.frame.to_json()}
+            "coverage": coverage, "photo_mm_per_px": photo_mm_per_px, "plane": surface.frame.to_json()}
 
 
 def build_surface(ws: JobWorkspace, cfg: CrackSurveyConfig, camera_side: np.ndarray) -> Surface:
@@ -92,16 +95,18 @@ def _read(path: str) -> np.ndarray:
 
 
 def compose_stage(camera: Camera, views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], surface: Surface,
-                  compose: str) -> tuple[np.ndarray, np.ndarray]:
+                  compose: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One stage's photos ``(image, R, C)`` on the raster of ``surface``, in blocks of rows.
 
     ``best``: each output pixel from the photo with the highest sampling density there (the most frontal
     and nearest view); ``average``: the mean of all photos that see it.
-    Returns (H, W, 3) uint8 BGR and (H, W) bool, True where at least one photo sees the specimen.
+    Returns (H, W, 3) uint8 BGR, (H, W) bool True where at least one photo sees the specimen, and (H, W)
+    float32 the highest sampling density there (photo pixels per mm^2).
     """
     shape = surface.shape
     image = np.zeros((*shape, 3), np.uint8)
-    best = np.zeros(shape, np.float32)  # "best": the density of the photo each pixel came from; "average": count
+    best = np.zeros(shape, np.float32)  # the highest density of a photo at each pixel
+    count = np.zeros(shape, np.float32) if compose == "average" else None
     total = np.zeros((*shape, 3), np.float32) if compose == "average" else None
     step = max(1, BLOCK_PIXELS // shape[1])
     for photo, R, C in views:
@@ -110,17 +115,16 @@ def compose_stage(camera: Camera, views: list[tuple[np.ndarray, np.ndarray, np.n
             rows = slice(top, min(top + step, shape[0]))
             map_x, map_y, density = rectification_maps(camera, R, C, surface, rows, depth)
             warped = cv2.remap(photo, map_x, map_y, INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
-            if total is None:
-                better = density > best[rows]
-                np.copyto(image[rows], warped, where=better[..., None])
-                np.maximum(best[rows], density, out=best[rows])
+            if total is None or count is None:
+                np.copyto(image[rows], warped, where=(density > best[rows])[..., None])
             else:
                 seen = density > 0
                 np.add(total[rows], warped, out=total[rows], where=seen[..., None])
-                best[rows] += seen
-    if total is not None:
+                count[rows] += seen
+            np.maximum(best[rows], density, out=best[rows])
+    if total is not None and count is not None:
         for top in range(0, shape[0], step):  # the mean, block by block: no full-size temporaries
             rows = slice(top, min(top + step, shape[0]))
-            mean = total[rows] / np.maximum(best[rows], 1.0)[..., None]
+            mean = total[rows] / np.maximum(count[rows], 1.0)[..., None]
             image[rows] = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
-    return image, best > 0
+    return image, best > 0, best

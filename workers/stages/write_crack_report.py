@@ -27,6 +27,7 @@ from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progre
 # millimetres; raster Y grows down the specimen with the rows (a positive pixel height in the transform).
 SPECIMEN_CRS = ('LOCAL_CS["specimen rectification plane (mm)",LOCAL_DATUM["specimen",32767],'
                 'UNIT["millimetre",0.001],AXIS["x",EAST],AXIS["y",SOUTH]]')
+OVERSAMPLING_WARNING = 2.0  # warn when the raster is this many times finer than the photos' own sampling
 STATUS_BGR = {"first": (0, 200, 255), "new": (0, 0, 255), "grown": (255, 0, 255), "unchanged": (0, 200, 0)}
 CSV_FIELDS = ("stage", "stage_label", "load", "id", "length_mm", "mean_width_mm", "max_width_mm", "orientation_deg",
               "status", "growth_mm", "x_min_mm", "y_min_mm", "x_max_mm", "y_max_mm")
@@ -35,7 +36,8 @@ CSV_FIELDS = ("stage", "stage_label", "load", "id", "length_mm", "mean_width_mm"
 def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write the rectified COGs and overlays, ``cracks.geojson``, ``cracks.csv`` and ``report.json``."""
     pairs = read_json(ws.comparison_file())["pairs"]
-    stages, rows = [], []
+    native = (ws.load_stage_report("rectify_specimen") or {}).get("photo_mm_per_px") or [None] * len(cfg.stages)
+    stages, rows, warnings = [], [], []
     for s, stage in enumerate(cfg.stages):
         progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
         cracks = crack_rows(ws, cfg, s, pairs[s - 1]["cracks"] if s > 0 else None)
@@ -43,7 +45,12 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         _write_cog(ws, s, image, mask, cfg)
         _write_overlay(ws, s, image, cracks, cfg.mm_per_px)
         _, summary = load_stage_cracks(ws, s)
+        if native[s] is not None and cfg.mm_per_px < native[s] / OVERSAMPLING_WARNING:
+            warnings.append(f"stage {stage.label!r}: the photos resolve {native[s]:.3g} mm per pixel on the "
+                            f"specimen, the raster {cfg.mm_per_px:.3g}: resampled coating grain may be taken "
+                            "for short cracks; a mm_per_px near the photos' is safer")
         stages.append({"index": s, "label": stage.label, "load": stage.load, "coverage": float(mask.mean()),
+                       "photo_mm_per_px": native[s],
                        **summary, "rectified": ws.stage_cog_file(s).name, "overlay": ws.stage_overlay_file(s).name,
                        "cracks": cracks})
         rows += cracks
@@ -55,7 +62,7 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
                         "(col, row) centred on (x, y) / mm_per_px; cracks.geojson: specimen model (X, Y, Z) mm"),
               "plane": surface.frame.to_json(),
               "photos": read_json(ws.orientation_file())["photos"], "stages": stages,
-              "comparisons": [{k: v for k, v in p.items() if k != "cracks"} for p in pairs]}
+              "comparisons": [{k: v for k, v in p.items() if k != "cracks"} for p in pairs], "warnings": warnings}
     write_json(ws.report_file(), report)
     progress(1.0, "report written")
     return {"stages": len(stages), "cracks": len(rows)}
