@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from rasterio.windows import Window
 
+from workers.algorithms.crack_geometry import Crack
 from workers.algorithms.specimen_surface import Surface
 from workers.config import CrackSurveyConfig
 from workers.raster_io import open_block_writer, translate_to_cog
@@ -40,11 +41,11 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     stages, rows, warnings = [], [], []
     for s, stage in enumerate(cfg.stages):
         progress(s / len(cfg.stages), f"stage {s + 1}/{len(cfg.stages)}")
-        cracks = crack_rows(ws, cfg, s, pairs[s - 1]["cracks"] if s > 0 else None)
+        measured, summary = load_stage_cracks(ws, s)
+        cracks = crack_rows(cfg, s, measured, pairs[s - 1]["cracks"] if s > 0 else None)
         image, mask = ws.load_rectified(s)
         _write_cog(ws, s, image, mask, cfg)
         _write_overlay(ws, s, image, cracks, cfg.mm_per_px)
-        _, summary = load_stage_cracks(ws, s)
         if native[s] is not None and cfg.mm_per_px < native[s] / OVERSAMPLING_WARNING:
             warnings.append(f"stage {stage.label!r}: the photos resolve {native[s]:.3g} mm per pixel on the "
                             f"specimen, the raster {cfg.mm_per_px:.3g}: resampled coating grain may be taken "
@@ -68,11 +69,10 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     return {"stages": len(stages), "cracks": len(rows)}
 
 
-def crack_rows(ws: JobWorkspace, cfg: CrackSurveyConfig, s: int, matches: list[dict[str, Any]] | None
+def crack_rows(cfg: CrackSurveyConfig, s: int, cracks: list[Crack], matches: list[dict[str, Any]] | None
                ) -> list[dict[str, Any]]:
     """Every crack of stage ``s`` with its status against the stage before ("first" for the first stage)."""
     stage = cfg.stages[s]
-    cracks, _ = load_stage_cracks(ws, s)
     rows = []
     for k, crack in enumerate(cracks):
         match = matches[k] if matches is not None else {"status": "first", "growth_mm": None, "previous": []}
