@@ -9,7 +9,6 @@ exactly those the options name, each of the camera's size with its control point
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,7 +24,7 @@ from api.settings import Settings
 from api.uploads import display_name
 from workers.algorithms.camera import Camera
 from workers.algorithms.mesh import Mesh, distance_to_surface, plane_through, read_mesh
-from workers.workspace import job_workspace, read_json
+from workers.workspace import job_workspace, read_json, specimen_model_path
 
 KIND = "crack_survey"
 ON_MESH_TOLERANCE = 0.005  # a mesh's control points must lie this close to its surface, times its diagonal
@@ -92,7 +91,7 @@ async def _mesh_attachment(config: dict[str, Any], model: UploadFile | None, max
     except ValueError as exc:
         raise InvalidInputError(f"options.specimen: {exc}") from None
     _check_on_mesh(mesh, config["stages"])
-    return {str(Path("specimen") / f"model{Path(name).suffix.lower()}"): data}
+    return {str(specimen_model_path(name)): data}
 
 
 def _check_on_mesh(mesh: Mesh, stages: list[dict[str, Any]]) -> None:

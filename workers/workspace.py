@@ -190,8 +190,8 @@ class JobWorkspace:
         return self.root / "orientation.json"
 
     def specimen_model_file(self, name: str) -> Path:
-        """The uploaded mesh of the specimen, stored under a fixed name with its format's suffix."""
-        return self.root / "specimen" / f"model{Path(name).suffix.lower()}"
+        """The uploaded mesh of the specimen (see :func:`specimen_model_path`)."""
+        return self.root / specimen_model_path(name)
 
     def surface_file(self) -> Path:
         """The rectification plane and the specimen's heights above it (``rectify_specimen``), ``.npz``."""
@@ -299,6 +299,12 @@ def _save_npz(path: Path, **arrays: np.ndarray) -> None:
 
 ProgressFn = Callable[[float, str], None]
 """``progress(fraction_of_stage in [0, 1], detail such as "frame 4/12")``."""
+
+
+def specimen_model_path(name: str) -> Path:
+    """Where a job keeps its specimen's mesh, relative to its folder: a fixed name with the upload's suffix
+    (the API writes it there before the job's folder exists as a workspace)."""
+    return Path("specimen") / f"model{Path(name).suffix.lower()}"
 
 
 def noop_progress(_fraction: float, _detail: str) -> None:
