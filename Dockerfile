@@ -27,6 +27,7 @@ WORKDIR /app
 # is named explicitly below instead of being found next to the sources.
 COPY pyproject.toml README.md ./
 COPY api api
+COPY core core
 COPY workers workers
 COPY gpu_kernels gpu_kernels
 RUN pip install ".[postgres]" && rm -rf build *.egg-info

@@ -9,21 +9,28 @@ from typing import Any
 
 from fastapi import UploadFile
 
-from api.db import Database, JobStatus
 from api.errors import ConflictError, InvalidInputError
 from api.job_service import enqueue, job_or_404, validated_config
 from api.models import JobOut, JobResultOut, MarksUpdate
 from api.photo_jobs import job_of_kind, record_photo_job
 from api.queue import JobQueue
-from api.settings import Settings
-from workers.workspace import job_workspace, read_json
+from core.db import Database
+from core.kinds import JobKind, JobStatus
+from core.settings import Settings
+from workers.algorithms.calibration import MIN_VIEWS
+from workers.workspace import job_workspace
 
-MIN_VIEWS = 3  # a camera (or a rig) needs boards seen from at least three directions
 MIN_MARKS = 6  # marked points per image: a pose has six unknowns
 
 
-async def create_calibration(db: Database, settings: Settings, queue: JobQueue, kind: str,
-                             groups: dict[str, list[UploadFile]], options: dict[str, Any]) -> JobOut:
+async def create_calibration(
+    db: Database,
+    settings: Settings,
+    queue: JobQueue,
+    kind: JobKind,
+    groups: dict[str, list[UploadFile]],
+    options: dict[str, Any],
+) -> JobOut:
     """Record and queue a ``calibration`` or ``stereo_calibration`` job over the uploaded photos.
 
     ``groups`` maps a side ("" for one camera, "left"/"right" for a rig) to its photos, in order.
@@ -38,8 +45,8 @@ async def create_calibration(db: Database, settings: Settings, queue: JobQueue, 
     return await record_photo_job(db, settings, queue, kind, options, config, groups, check)
 
 
-def _check_counts(kind: str, config: dict[str, Any], groups: dict[str, list[UploadFile]]) -> None:
-    if kind == "stereo_calibration":
+def _check_counts(kind: JobKind, config: dict[str, Any], groups: dict[str, list[UploadFile]]) -> None:
+    if kind == JobKind.stereo_calibration:
         left, right = len(groups.get("left", [])), len(groups.get("right", []))
         if left != right:
             raise InvalidInputError(f"a stereo rig needs pairs: {left} left and {right} right photo(s)")
@@ -51,11 +58,12 @@ def _check_counts(kind: str, config: dict[str, Any], groups: dict[str, list[Uplo
         if not groups.get("") and config["image_size"] is None:
             raise InvalidInputError("options.image_size: give [width, height] or upload the photo of the lines")
     elif len(groups.get("", [])) < MIN_VIEWS:
-        raise InvalidInputError(f"a calibration needs at least {MIN_VIEWS} photos of the board, "
-                                f"got {len(groups.get('', []))}")
+        raise InvalidInputError(
+            f"a calibration needs at least {MIN_VIEWS} photos of the board, got {len(groups.get('', []))}"
+        )
 
 
-def _check_sizes(kind: str, frames: list[dict[str, Any]]) -> None:
+def _check_sizes(kind: JobKind, frames: list[dict[str, Any]]) -> None:
     """Every photo of one camera has the camera's size."""
     for side in {f["side"] for f in frames}:
         mine = [f for f in frames if f["side"] == side]
@@ -63,8 +71,10 @@ def _check_sizes(kind: str, frames: list[dict[str, Any]]) -> None:
         for f in mine[1:]:
             if (f["width"], f["height"]) != (first["width"], first["height"]):
                 camera = f"the {side} camera" if side else "one camera"
-                raise InvalidInputError(f"{f['name']} is {f['width']}x{f['height']} px but {first['name']} is "
-                                        f"{first['width']}x{first['height']}; photos of {camera} share one size")
+                raise InvalidInputError(
+                    f"{f['name']} is {f['width']}x{f['height']} px but {first['name']} is "
+                    f"{first['width']}x{first['height']}; photos of {camera} share one size"
+                )
 
 
 def _check_marks(marks: list[dict[str, Any]], names: set[str]) -> None:
@@ -74,23 +84,26 @@ def _check_marks(marks: list[dict[str, Any]], names: set[str]) -> None:
         if mark["remove"]:
             continue
         if len(mark["image_points"]) != len(mark["board_points"]):
-            raise InvalidInputError(f"markers of {mark['image']}: {len(mark['image_points'])} image points but "
-                                    f"{len(mark['board_points'])} board points")
+            raise InvalidInputError(
+                f"markers of {mark['image']}: {len(mark['image_points'])} image points but "
+                f"{len(mark['board_points'])} board points"
+            )
         if len(mark["image_points"]) < MIN_MARKS:
-            raise InvalidInputError(f"markers of {mark['image']}: at least {MIN_MARKS} points are needed, "
-                                    f"got {len(mark['image_points'])}")
+            raise InvalidInputError(
+                f"markers of {mark['image']}: at least {MIN_MARKS} points are needed, got {len(mark['image_points'])}"
+            )
 
 
-def get_calibration(db: Database, settings: Settings, job_id: int, kind: str) -> JobResultOut:
-    noun = "stereo rig" if kind == "stereo_calibration" else "calibration"
+def get_calibration(db: Database, settings: Settings, job_id: int, kind: JobKind) -> JobResultOut:
+    noun = "stereo rig" if kind == JobKind.stereo_calibration else "calibration"
     job = job_of_kind(db, job_id, (kind,), noun)
-    result = job_workspace(settings.data_dir, job_id).calibration_file()
-    return JobResultOut(job=job, result=read_json(result) if result.exists() else None)
+    ws = job_workspace(settings.data_dir, job_id)
+    return JobResultOut(job=job, result=ws.load_calibration() if ws.has_calibration() else None)
 
 
 def replace_markers(db: Database, settings: Settings, queue: JobQueue, job_id: int, body: MarksUpdate) -> JobOut:
     """Replace (or remove) the marks of some photos and solve again; the corner detection is kept."""
-    job = job_of_kind(db, job_id, ("calibration",), "calibration")
+    job = job_of_kind(db, job_id, (JobKind.calibration,), "calibration")
     if not JobStatus(job.status).finished:
         raise ConflictError(f"calibration {job_id} is {job.status}; change its marks once it has finished")
     ws = job_workspace(settings.data_dir, job_id)
@@ -98,11 +111,11 @@ def replace_markers(db: Database, settings: Settings, queue: JobQueue, job_id: i
     marks = [m.model_dump() for m in body.markers]
     _check_marks(marks, {f["name"] for f in ws.load_inputs()})
     merged = {m["image"]: m for m in config["markers"]} | {m["image"]: m for m in marks}
-    config = validated_config("calibration", {**config, "markers": list(merged.values())})
+    config = validated_config(JobKind.calibration, {**config, "markers": list(merged.values())})
     ws.save_config(config)
     for stage in ("calibrate_camera", "fit_plumb_line"):
-        ws.stage_report_file(stage).unlink(missing_ok=True)
+        ws.forget_stage_report(stage)
     with db.session() as s:
         record = job_or_404(s, job_id)
-        record.status, record.error, record.progress_detail = JobStatus.queued.value, "", "marks changed"
+        record.status, record.error, record.progress_detail = JobStatus.queued, "", "marks changed"
     return enqueue(db, queue, job_id)

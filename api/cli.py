@@ -25,8 +25,13 @@ def build_parser() -> argparse.ArgumentParser:
     process = sub.add_parser("process", help="run the mosaic pipeline on a folder of photos, no service needed")
     process.add_argument("directory", type=Path, help="folder of overlapping photos (JPEG, PNG, TIFF)")
     process.add_argument("-o", "--output", type=Path, required=True, help="output folder (mosaic.tif, report.json)")
-    process.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                         help="pipeline option, e.g. --set working_max_px=1600 (repeatable)")
+    process.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="pipeline option, e.g. --set working_max_px=1600 (repeatable)",
+    )
     return parser
 
 
@@ -58,8 +63,8 @@ def _worker(args: argparse.Namespace) -> int:
 
 
 def _up(args: argparse.Namespace) -> int:
-    from api.services import start_redis, start_worker, stop  # noqa: PLC0415
-    from api.settings import get_settings  # noqa: PLC0415
+    from api.embedded_stack import start_redis, start_worker, stop  # noqa: PLC0415
+    from core.settings import get_settings  # noqa: PLC0415
 
     # uvicorn re-raises SIGTERM once it has shut down; turn it into SystemExit so the children stop too.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
@@ -90,8 +95,11 @@ def _process(args: argparse.Namespace) -> int:
         return 1
     print(file=sys.stderr)
     summary = {k: report[k] for k in ("tie_point_rms_px", "georeferenced", "crs", "gsd_m", "stage_seconds")}
-    summary.update(mosaic=str(args.output / "mosaic.tif"), frames_used=len(report["frames_used"]),
-                   frames_rejected=report["frames_rejected"])
+    summary.update(
+        mosaic=str(args.output / "mosaic.tif"),
+        frames_used=len(report["frames_used"]),
+        frames_rejected=report["frames_rejected"],
+    )
     print(json.dumps(summary, indent=2))
     return 0
 

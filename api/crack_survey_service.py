@@ -14,28 +14,34 @@ from typing import Any
 import numpy as np
 from fastapi import UploadFile
 
-from api.db import Database, Job, JobStatus
 from api.errors import InvalidInputError, TooLargeError
 from api.job_service import validated_config
 from api.models import JobOut, JobResultOut
 from api.photo_jobs import job_of_kind, record_photo_job
 from api.queue import JobQueue
-from api.settings import Settings
 from api.uploads import display_name
-from workers.algorithms.camera import Camera
-from workers.algorithms.mesh import Mesh, distance_to_surface, plane_through, read_mesh
-from workers.workspace import job_workspace, read_json, specimen_model_path
+from core.db import Database, Job
+from core.kinds import JobKind, JobStatus
+from core.settings import Settings
+from workers.algorithms.geometry import Camera
+from workers.algorithms.specimen import Mesh, distance_to_surface, plane_through, read_mesh
+from workers.workspace import job_workspace, specimen_model_path
 
-KIND = "crack_survey"
 ON_MESH_TOLERANCE = 0.005  # a mesh's control points must lie this close to its surface, times its diagonal
 ON_MESH_MIN_MM = 1.0  # ... or this close, mm, whichever is larger
 
 
-async def create_crack_survey(db: Database, settings: Settings, queue: JobQueue, files: list[UploadFile],
-                              options: dict[str, Any], model: UploadFile | None = None) -> JobOut:
+async def create_crack_survey(
+    db: Database,
+    settings: Settings,
+    queue: JobQueue,
+    files: list[UploadFile],
+    options: dict[str, Any],
+    model: UploadFile | None = None,
+) -> JobOut:
     """Record and queue a crack survey over ``files``, the photos its ``options.stages`` name, and ``model``,
     the specimen's mesh when ``options.specimen.mesh`` names one."""
-    config = validated_config(KIND, with_calibration_camera(db, settings, options))
+    config = validated_config(JobKind.crack_survey, with_calibration_camera(db, settings, options))
     try:
         camera = Camera.from_json(config["camera"])
     except ValueError as exc:
@@ -48,7 +54,9 @@ async def create_crack_survey(db: Database, settings: Settings, queue: JobQueue,
         for frame in frames:
             _check_photo(frame, photos[frame["name"]], camera)
 
-    return await record_photo_job(db, settings, queue, KIND, options, config, {"": files}, check, attachments)
+    return await record_photo_job(
+        db, settings, queue, JobKind.crack_survey, options, config, {"": files}, check, attachments
+    )
 
 
 def with_calibration_camera(db: Database, settings: Settings, options: dict[str, Any]) -> dict[str, Any]:
@@ -62,12 +70,13 @@ def with_calibration_camera(db: Database, settings: Settings, options: dict[str,
         raise InvalidInputError("options.calibration_job: the id (an integer) of a calibration job")
     with db.session() as s:
         job = s.get(Job, job_id)
-        if job is None or job.kind != "calibration":
+        if job is None or job.kind != JobKind.calibration:
             raise InvalidInputError(f"options.calibration_job: there is no calibration job {job_id}")
-        if job.status != JobStatus.succeeded.value:
-            raise InvalidInputError(f"options.calibration_job: calibration job {job_id} is {job.status}; "
-                                    "use one that has succeeded")
-    result = read_json(job_workspace(settings.data_dir, job_id).calibration_file())
+        if job.status != JobStatus.succeeded:
+            raise InvalidInputError(
+                f"options.calibration_job: calibration job {job_id} is {job.status}; use one that has succeeded"
+            )
+    result = job_workspace(settings.data_dir, job_id).load_calibration()
     return {**options, "camera": result["camera"]}
 
 
@@ -76,8 +85,10 @@ async def _mesh_attachment(config: dict[str, Any], model: UploadFile | None, max
     name = config["specimen"]["mesh"]
     if name is None:
         if model is not None:
-            raise InvalidInputError("a model file was uploaded but options.specimen is a plate; "
-                                    "name the file in options.specimen.mesh to use it")
+            raise InvalidInputError(
+                "a model file was uploaded but options.specimen is a plate; "
+                "name the file in options.specimen.mesh to use it"
+            )
         return {}
     if model is None or display_name(model.filename) != name:
         raise InvalidInputError(f"options.specimen.mesh names {name!r}: upload that file as the 'model' field")
@@ -105,7 +116,8 @@ def _check_on_mesh(mesh: Mesh, stages: list[dict[str, Any]]) -> None:
             if distances[worst] > tolerance:
                 raise InvalidInputError(
                     f"stage {s} photo {photo['image']}: control point {worst} at model {model[worst].tolist()} is "
-                    f"{distances[worst]:.2f} mm from the model's surface (at most {tolerance:.2f} mm)")
+                    f"{distances[worst]:.2f} mm from the model's surface (at most {tolerance:.2f} mm)"
+                )
 
 
 def _check_names(named: list[str], uploaded: list[str]) -> None:
@@ -117,9 +129,11 @@ def _check_names(named: list[str], uploaded: list[str]) -> None:
 
 def _check_photo(frame: dict[str, Any], photo: dict[str, Any], camera: Camera) -> None:
     if (frame["width"], frame["height"]) != (camera.width, camera.height):
-        raise InvalidInputError(f"{frame['name']} is {frame['width']}x{frame['height']} px but the camera is "
-                                f"{camera.width}x{camera.height}; every photo must come from the calibrated camera "
-                                "at full size")
+        raise InvalidInputError(
+            f"{frame['name']} is {frame['width']}x{frame['height']} px but the camera is "
+            f"{camera.width}x{camera.height}; every photo must come from the calibrated camera "
+            "at full size"
+        )
     for k, point in enumerate(photo["control_points"]):
         x, y = point["pixel"]
         if not (-0.5 <= x <= camera.width - 0.5 and -0.5 <= y <= camera.height - 0.5):
@@ -127,6 +141,6 @@ def _check_photo(frame: dict[str, Any], photo: dict[str, Any], camera: Camera) -
 
 
 def get_crack_survey(db: Database, settings: Settings, job_id: int) -> JobResultOut:
-    job = job_of_kind(db, job_id, (KIND,), "crack survey")
-    report = job_workspace(settings.data_dir, job_id).report_file()
-    return JobResultOut(job=job, result=read_json(report) if report.exists() else None)
+    job = job_of_kind(db, job_id, (JobKind.crack_survey,), "crack survey")
+    ws = job_workspace(settings.data_dir, job_id)
+    return JobResultOut(job=job, result=ws.load_report() if ws.has_report() else None)

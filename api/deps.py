@@ -6,9 +6,9 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from api.db import Database
 from api.queue import JobQueue
-from api.settings import Settings
+from core.db import Database
+from core.settings import Settings
 
 
 def get_settings(request: Request) -> Settings:

@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from api.db import Database, Flight
 from api.errors import InvalidInputError, NotFoundError, TooLargeError
-from workers.algorithms.gcp import GCP_FILE_NAMES, GroundControlPoint, LocalFrame, gcp_file_name, parse_gcp_file
+from core.db import Database, Flight
+from workers.algorithms.sfm import GCP_FILE_NAMES, GroundControlPoint, LocalFrame, gcp_file_name, parse_gcp_file
 from workers.workspace import atomic_path, find_gcp_file, flight_folder
 
 MAX_GCP_BYTES = 5 * 1024 * 1024
@@ -50,6 +50,10 @@ def store_gcps(db: Database, data_dir: Path, flight_id: int, filename: str, cont
 
 def gcp_summary(name: str, gcps: list[GroundControlPoint], sizes: dict[str, tuple[int, int]]) -> dict[str, Any]:
     images = {image for g in gcps for image in g.observations}
-    return {"file": name, "points": len(gcps), "with_position": sum(g.position is not None for g in gcps),
-            "observations": sum(len(g.observations) for g in gcps),
-            "images_not_in_flight": sorted(images - set(sizes))}
+    return {
+        "file": name,
+        "points": len(gcps),
+        "with_position": sum(g.position is not None for g in gcps),
+        "observations": sum(len(g.observations) for g in gcps),
+        "images_not_in_flight": sorted(images - set(sizes)),
+    }

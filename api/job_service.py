@@ -10,22 +10,34 @@ from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from api.db import Database, Flight, Job, JobStatus
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
 from api.gcp_service import gcp_file
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
-from api.settings import Settings
+from core.db import Database, Flight, Job
+from core.kinds import JobStatus
+from core.settings import Settings
 from workers.config import build_config
 from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import flight_folder, job_workspace
 
 
 def job_out(job: Job) -> JobOut:
-    return JobOut(id=job.id, flight_id=job.flight_id, kind=job.kind, status=job.status, stage=job.stage,
-                  stages=stage_names(pipeline_key(job.kind, job.options)), progress=job.progress,
-                  progress_detail=job.progress_detail, timings=job.timings or {}, error=job.error,
-                  options=job.options or {}, created_at=job.created_at, updated_at=job.updated_at)
+    return JobOut(
+        id=job.id,
+        flight_id=job.flight_id,
+        kind=job.kind,
+        status=job.status,
+        stage=job.stage,
+        stages=stage_names(pipeline_key(job.kind, job.options)),
+        progress=job.progress,
+        progress_detail=job.progress_detail,
+        timings=job.timings or {},
+        error=job.error,
+        options=job.options or {},
+        created_at=job.created_at,
+        updated_at=job.updated_at,
+    )
 
 
 def validated_config(kind: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -45,7 +57,7 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
         if len(flight.images) < 2:
             raise InvalidInputError(f"flight {flight.id} has {len(flight.images)} image(s); a mosaic needs at least 2")
         frames = [_frame_input(settings, flight.id, image) for image in flight.images]
-        job = Job(flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued.value)
+        job = Job(flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued)
         s.add(job)
         s.flush()
         ws = job_workspace(settings.data_dir, job.id)
@@ -78,7 +90,7 @@ def enqueue(db: Database, queue: JobQueue, job_id: int) -> JobOut:
     except Exception as exc:  # the broker is down: say so, and don't leave a job that never runs
         with db.session() as s:
             failed = job_or_404(s, job_id)
-            failed.status, failed.error = JobStatus.failed.value, f"could not reach the job queue: {exc}"
+            failed.status, failed.error = JobStatus.failed, f"could not reach the job queue: {exc}"
         raise UnavailableError(f"the job queue is unavailable ({type(exc).__name__}); try again shortly") from None
     with db.session() as s:
         sent = job_or_404(s, job_id)
@@ -111,9 +123,9 @@ def retry_job(db: Database, queue: JobQueue, job_id: int) -> JobOut:
     """Queue a failed or cancelled job again; stages that finished are skipped, so it resumes where it stopped."""
     with db.session() as s:
         job = job_or_404(s, job_id)
-        if job.status not in (JobStatus.failed.value, JobStatus.cancelled.value):
+        if job.status not in (JobStatus.failed, JobStatus.cancelled):
             raise ConflictError(f"job {job_id} is {job.status}; only a failed or cancelled job can be retried")
-        job.status, job.error, job.progress_detail = JobStatus.queued.value, "", "retrying"
+        job.status, job.error, job.progress_detail = JobStatus.queued, "", "retrying"
     return enqueue(db, queue, job_id)
 
 
@@ -123,5 +135,5 @@ def cancel_job(db: Database, job_id: int) -> JobOut:
         job = job_or_404(s, job_id)
         if JobStatus(job.status).finished:
             raise ConflictError(f"job {job_id} is already {job.status}")
-        job.status, job.progress_detail = JobStatus.cancelled.value, "cancelled by user"
+        job.status, job.progress_detail = JobStatus.cancelled, "cancelled by user"
         return job_out(job)

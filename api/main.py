@@ -5,19 +5,24 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
-from api.db import Database
 from api.errors import install_error_handlers
 from api.queue import CeleryQueue, JobQueue
 from api.routes import calibrations, crack_surveys, flights, jobs, tiles, web
-from api.settings import Settings, get_settings
+from core.db import Database
+from core.settings import Settings, get_settings
 
 
 def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:
     """Build the service. ``queue`` defaults to Celery on ``settings.redis_url``."""
     settings = settings or get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    app = FastAPI(title="Fotoskhema", version="0.1.0", docs_url=None, redoc_url=None,
-                  description="Upload drone flights, run mosaic jobs, view the result as XYZ tiles.")
+    app = FastAPI(
+        title="Fotoskhema",
+        version="0.1.0",
+        docs_url=None,
+        redoc_url=None,
+        description="Upload drone flights, run mosaic jobs, view the result as XYZ tiles.",
+    )
     app.state.settings = settings
     app.state.db = Database(settings.resolved_database_url())
     app.state.queue = queue or CeleryQueue(settings.redis_url, settings.celery_queue)

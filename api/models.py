@@ -59,6 +59,8 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     flight_id: int
+    # JobKind.mosaic, spelled as a plain Literal: a Literal of the enum member would validate the same but
+    # word its 422 message differently ("Input should be <JobKind.mosaic: 'mosaic'>")
     kind: Literal["mosaic"] = "mosaic"
     options: dict[str, Any] = Field(default_factory=dict)
 

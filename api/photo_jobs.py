@@ -17,13 +17,14 @@ from typing import Any
 
 from fastapi import UploadFile
 
-from api.db import Database, Job, JobStatus
 from api.errors import InvalidInputError, NotFoundError
 from api.job_service import enqueue, job_out
 from api.models import JobOut
 from api.queue import JobQueue
-from api.settings import Settings
 from api.uploads import StagedFile, stage_images, stored_name
+from core.db import Database, Job
+from core.kinds import JobKind, JobStatus
+from core.settings import Settings
 from workers.workspace import JobWorkspace, atomic_path, job_workspace
 
 
@@ -40,10 +41,17 @@ def parse_options(raw: str | None) -> dict[str, Any]:
     return options
 
 
-async def record_photo_job(db: Database, settings: Settings, queue: JobQueue, kind: str, options: dict[str, Any],
-                           config: dict[str, Any], groups: dict[str, list[UploadFile]],
-                           check: Callable[[list[dict[str, Any]]], None],
-                           attachments: dict[str, bytes] | None = None) -> JobOut:
+async def record_photo_job(
+    db: Database,
+    settings: Settings,
+    queue: JobQueue,
+    kind: JobKind,
+    options: dict[str, Any],
+    config: dict[str, Any],
+    groups: dict[str, list[UploadFile]],
+    check: Callable[[list[dict[str, Any]]], None],
+    attachments: dict[str, bytes] | None = None,
+) -> JobOut:
     """Stage and validate the photos, ``check`` their frames (raise ``InvalidInputError``), then record the
     job with its photos in its own folder and queue it; a failed request leaves nothing behind.
 
@@ -56,7 +64,7 @@ async def record_photo_job(db: Database, settings: Settings, queue: JobQueue, ki
         frames = _frames(staged)
         check(frames)
         with db.session() as s:
-            job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued.value)
+            job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued)
             s.add(job)
             s.flush()
             _write_workspace(job_workspace(settings.data_dir, job.id), staged, frames, config, attachments or {})
@@ -73,17 +81,29 @@ def _frames(staged: dict[str, list[StagedFile]]) -> list[dict[str, Any]]:
             if item.display_name in names:
                 raise InvalidInputError(f"{item.display_name}: two photos of this request have the same name")
             names.add(item.display_name)
-            frames.append({"name": item.display_name, "side": side, "pair": n,
-                           "width": item.meta["width"], "height": item.meta["height"]})
+            frames.append(
+                {
+                    "name": item.display_name,
+                    "side": side,
+                    "pair": n,
+                    "width": item.meta["width"],
+                    "height": item.meta["height"],
+                }
+            )
     return frames
 
 
-def _write_workspace(ws: JobWorkspace, staged: dict[str, list[StagedFile]], frames: list[dict[str, Any]],
-                     config: dict[str, Any], attachments: dict[str, bytes]) -> None:
+def _write_workspace(
+    ws: JobWorkspace,
+    staged: dict[str, list[StagedFile]],
+    frames: list[dict[str, Any]],
+    config: dict[str, Any],
+    attachments: dict[str, bytes],
+) -> None:
     for relative, content in attachments.items():
-        with atomic_path(ws.root / relative) as tmp:
+        with atomic_path(ws.input_file(relative)) as tmp:
             tmp.write_bytes(content)
-    folder = ws.root / "images"
+    folder = ws.images_dir()
     folder.mkdir(parents=True, exist_ok=True)
     items = [item for side in staged.values() for item in side]
     for n, (item, frame) in enumerate(zip(items, frames, strict=True)):
@@ -94,7 +114,7 @@ def _write_workspace(ws: JobWorkspace, staged: dict[str, list[StagedFile]], fram
     ws.save_inputs(frames)
 
 
-def job_of_kind(db: Database, job_id: int, kinds: tuple[str, ...], noun: str) -> JobOut:
+def job_of_kind(db: Database, job_id: int, kinds: tuple[JobKind, ...], noun: str) -> JobOut:
     """The job ``job_id`` if it is of one of ``kinds``, else 404 naming it a ``noun``."""
     with db.session() as s:
         job = s.get(Job, job_id)

@@ -25,6 +25,8 @@ class CeleryQueue:
         self.queue = queue
 
     def enqueue(self, job_id: int, pipeline: str) -> str:
-        signatures = [self.app.signature(task_name(stage), args=(job_id,), immutable=True, queue=self.queue)
-                      for stage in stage_names(pipeline)]
+        signatures = [
+            self.app.signature(task_name(stage), args=(job_id,), immutable=True, queue=self.queue)
+            for stage in stage_names(pipeline)
+        ]
         return str(chain(*signatures).apply_async().id)

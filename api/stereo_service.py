@@ -1,6 +1,6 @@
 """Measuring with a calibrated stereo rig: answered at once, from the rig JSON of a finished job.
 
-Uses only NumPy (``workers.algorithms.stereo``), so the API stays free of OpenCV.
+Uses only NumPy (``workers.algorithms.calibration.stereo_rig``), so the API stays free of OpenCV.
 """
 
 from __future__ import annotations
@@ -9,24 +9,25 @@ from typing import Any
 
 import numpy as np
 
-from api.db import Database, Job, JobStatus
 from api.errors import ConflictError, InvalidInputError, NotFoundError
 from api.models import MeasureRequest
-from api.settings import Settings
-from workers.algorithms.stereo import StereoRig, measure
-from workers.workspace import job_workspace, read_json
+from core.db import Database, Job
+from core.kinds import JobKind, JobStatus
+from core.settings import Settings
+from workers.algorithms.calibration import StereoRig, measure
+from workers.workspace import job_workspace
 
 
 def load_rig(db: Database, settings: Settings, job_id: int) -> StereoRig:
     """The rig of stereo job ``job_id``; 404 unknown, 409 not calibrated (yet)."""
     with db.session() as s:
         job = s.get(Job, job_id)
-        if job is None or job.kind != "stereo_calibration":
+        if job is None or job.kind != JobKind.stereo_calibration:
             raise NotFoundError(f"stereo rig {job_id} not found")
         status = job.status
-    if status != JobStatus.succeeded.value:
+    if status != JobStatus.succeeded:
         raise ConflictError(f"stereo rig {job_id} is {status}; measure once its calibration has succeeded")
-    result = read_json(job_workspace(settings.data_dir, job_id).calibration_file())
+    result = job_workspace(settings.data_dir, job_id).load_calibration()
     return StereoRig.from_json(result["rig"])
 
 
@@ -44,8 +45,13 @@ def measure_with_rig(db: Database, settings: Settings, job_id: int, body: Measur
     return {
         "units": "mm (board units), left camera frame: x right, y down, z forward",
         "perturb_px": body.perturb_px,
-        "points": [{"xyz": m.points[i].tolist(), "sigma": float(m.point_sigma[i]), "ray_gap": float(m.ray_gap[i])}
-                   for i in range(n)],
-        "distances": [{"from": i, "to": j, "distance": float(m.distances[i, j]), "sigma": float(m.distance_sigma[i, j])}
-                      for i in range(n) for j in range(i + 1, n)],
+        "points": [
+            {"xyz": m.points[i].tolist(), "sigma": float(m.point_sigma[i]), "ray_gap": float(m.ray_gap[i])}
+            for i in range(n)
+        ],
+        "distances": [
+            {"from": i, "to": j, "distance": float(m.distances[i, j]), "sigma": float(m.distance_sigma[i, j])}
+            for i in range(n)
+            for j in range(i + 1, n)
+        ],
     }

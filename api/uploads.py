@@ -16,9 +16,9 @@ from fastapi import UploadFile
 from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool
 
-from api.db import Database, Flight, Image
 from api.errors import ConflictError, InvalidInputError, NotFoundError, TooLargeError
-from api.settings import Settings
+from core.db import Database, Flight, Image
+from core.settings import Settings
 from workers.image_meta import ImageLimits, InvalidImageError, inspect_image
 from workers.workspace import flight_folder
 
@@ -108,8 +108,9 @@ async def _stage(upload: UploadFile, folder: Path, settings: Settings) -> Staged
 def _refuse_duplicates(db: Database, flight_id: int, staged: list[StagedFile]) -> None:
     seen: dict[str, str] = {}
     with db.session() as s:
-        for name, sha in s.execute(select(Image.filename, Image.meta["sha256"].as_string())
-                                   .where(Image.flight_id == flight_id)):
+        for name, sha in s.execute(
+            select(Image.filename, Image.meta["sha256"].as_string()).where(Image.flight_id == flight_id)
+        ):
             seen[sha] = name
     for item in staged:
         if item.sha256 in seen:
@@ -127,9 +128,16 @@ def _commit(db: Database, flight_id: int, folder: Path, staged: list[StagedFile]
                 stored = stored_name(seq + n, item)
                 os.replace(item.temp_path, folder / stored)
                 moved.append(folder / stored)
-                image = Image(flight_id=flight_id, seq=seq + n, filename=item.display_name, stored_name=stored,
-                              size_bytes=item.size, width=item.meta["width"], height=item.meta["height"],
-                              meta={**item.meta, "sha256": item.sha256})
+                image = Image(
+                    flight_id=flight_id,
+                    seq=seq + n,
+                    filename=item.display_name,
+                    stored_name=stored,
+                    size_bytes=item.size,
+                    width=item.meta["width"],
+                    height=item.meta["height"],
+                    meta={**item.meta, "sha256": item.sha256},
+                )
                 s.add(image)
                 images.append(image)
             s.flush()

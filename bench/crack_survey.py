@@ -9,12 +9,12 @@ Scenes (``tests/crack_scenes.py``, written to a temporary folder): a 400 x 300 m
 2008 x 1336 camera with Brown distortion (the UAV frame size of our source documents).
 
 - **Rectification** of one photo onto the specimen raster at ``--mm-per-px``:
-  ours (``rectify_specimen.compose_stage``: per raster pixel the full camera model, occlusion z-buffer for
-  the mesh, Lanczos resampling, in row blocks) against OpenCV's way for a plate, ``cv2.undistort`` then
-  ``cv2.warpPerspective`` with the plane's homography (Lanczos too). OpenCV has no mesh rectification,
-  so the panel row has no reference. The mean absolute grey difference between the two plate rasters
+  ours (``specimen.compose_views``, as ``rectify_specimen`` runs it: per raster pixel the full camera
+  model, occlusion z-buffer for the mesh, Lanczos resampling, in row blocks) against OpenCV's way for a
+  plate, ``cv2.undistort`` then ``cv2.warpPerspective`` with the plane's homography (Lanczos too). OpenCV has
+  no mesh rectification, so the panel row has no reference. The mean absolute grey difference between the two plate rasters
   tells that they render the same thing.
-- **Detection and measurement**: the service's tiled detector (``detect_cracks.detect_in_tiles``) and
+- **Detection and measurement**: the service's tiled detector (``cracks.detect_cracks``) and
   ``measure_cracks`` on the rectified plate, seconds per raster megapixel and peak memory (no reference:
   OpenCV has no crack detector).
 
@@ -43,16 +43,29 @@ def make_scene(folder: str, radius_mm: float | None) -> dict[str, Any]:
     """Render the scene once; what the children need, as plain data."""
     from tests.crack_scenes import make_crack_survey
 
-    scene = make_crack_survey(Path(folder), [(45.0, 0.0)], seed=3, width_mm=400.0, height_mm=300.0,
-                              frame_size=FRAME, panel_radius_mm=radius_mm)
+    scene = make_crack_survey(
+        Path(folder),
+        [(45.0, 0.0)],
+        seed=3,
+        width_mm=400.0,
+        height_mm=300.0,
+        frame_size=FRAME,
+        panel_radius_mm=radius_mm,
+    )
     photo = scene.photos[0]
-    return {"camera": scene.camera.to_json(), "photo": str(photo.path), "R": photo.R.tolist(), "C": photo.C.tolist(),
-            "mesh": str(scene.mesh_path) if scene.mesh_path else None, "width_mm": 400.0, "height_mm": 300.0}
+    return {
+        "camera": scene.camera.to_json(),
+        "photo": str(photo.path),
+        "R": photo.R.tolist(),
+        "C": photo.C.tolist(),
+        "mesh": str(scene.mesh_path) if scene.mesh_path else None,
+        "width_mm": 400.0,
+        "height_mm": 300.0,
+    }
 
 
 def _surface(scene: dict[str, Any], mm_per_px: float, C: Any) -> Any:
-    from workers.algorithms.mesh import best_fit_plane, read_mesh
-    from workers.algorithms.specimen_surface import mesh_surface, plate_surface
+    from workers.algorithms.specimen import best_fit_plane, mesh_surface, plate_surface, read_mesh
 
     if scene["mesh"] is None:
         return plate_surface(scene["width_mm"], scene["height_mm"], mm_per_px)
@@ -64,26 +77,31 @@ def run_ours(scene: dict[str, Any], mm_per_px: float, out: str) -> dict[str, Any
     import cv2
     import numpy as np
 
-    from workers.algorithms.camera import Camera
-    from workers.stages.rectify_specimen import compose_stage
+    from workers.algorithms.geometry import Camera
+    from workers.algorithms.specimen import compose_views
 
     camera = Camera.from_json(scene["camera"])
     image = cv2.imread(scene["photo"], cv2.IMREAD_COLOR)
     R, C = np.array(scene["R"]), np.array(scene["C"])
     started = time.perf_counter()
     surface = _surface(scene, mm_per_px, C)
-    raster, mask, _ = compose_stage(camera, [(image, R, C)], surface, "best")
+    raster, mask, _ = compose_views(camera, [(image, R, C)], surface, "best")
     seconds = time.perf_counter() - started
     np.save(out, raster)
-    return {"ok": True, "seconds": seconds, "peak_mib": peak_rss_mib(), "size": list(raster.shape[1::-1]),
-            "coverage": float(mask.mean())}
+    return {
+        "ok": True,
+        "seconds": seconds,
+        "peak_mib": peak_rss_mib(),
+        "size": list(raster.shape[1::-1]),
+        "coverage": float(mask.mean()),
+    }
 
 
 def run_opencv(scene: dict[str, Any], mm_per_px: float, out: str) -> dict[str, Any]:
     import cv2
     import numpy as np
 
-    from workers.algorithms.camera import Camera
+    from workers.algorithms.geometry import Camera
 
     camera = Camera.from_json(scene["camera"])
     image = cv2.imread(scene["photo"], cv2.IMREAD_COLOR)
@@ -105,23 +123,26 @@ def run_opencv(scene: dict[str, Any], mm_per_px: float, out: str) -> dict[str, A
 def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
     import numpy as np
 
-    from workers.algorithms.crack_geometry import measure_cracks
-    from workers.algorithms.cracks import load_crack_model
+    from workers.algorithms.cracks import background_px, detect_cracks, load_crack_model, measure_cracks
     from workers.config import CrackSurveyConfig
-    from workers.stages.detect_cracks import background_px, dark_enough, detect_in_tiles
 
     raster = np.load(raster_file)
     model = load_crack_model()
     min_contrast = CrackSurveyConfig.model_fields["min_crack_contrast"].default
     started = time.perf_counter()
-    mask = detect_in_tiles(raster, model, model.low, model.high)  # as the service runs it, tile by tile
-    mask = dark_enough(raster, mask, min_contrast, background_px(mm_per_px))
+    mask = detect_cracks(raster, model=model, min_contrast=min_contrast, background_px=background_px(mm_per_px))
     detected = time.perf_counter()
     cracks = measure_cracks(mask, mm_per_px, min_length_mm=1.0)
     measured = time.perf_counter()
     mpx = raster.shape[0] * raster.shape[1] / 1e6
-    return {"ok": True, "megapixels": mpx, "detect_s_per_mpx": (detected - started) / mpx,
-            "measure_s_per_mpx": (measured - detected) / mpx, "cracks": len(cracks), "peak_mib": peak_rss_mib()}
+    return {
+        "ok": True,
+        "megapixels": mpx,
+        "detect_s_per_mpx": (detected - started) / mpx,
+        "measure_s_per_mpx": (measured - detected) / mpx,
+        "cracks": len(cracks),
+        "peak_mib": peak_rss_mib(),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -140,21 +161,32 @@ def main(argv: list[str] | None = None) -> int:
         cv = in_child(run_opencv, plate, args.mm_per_px, cv_file)
         mesh = in_child(run_ours, panel, args.mm_per_px, panel_file)
         both = ours["ok"] and cv["ok"]
-        difference = (float(np.mean(np.abs(np.load(ours_file).astype(np.float32) - np.load(cv_file))))
-                      if both else None)
+        difference = float(np.mean(np.abs(np.load(ours_file).astype(np.float32) - np.load(cv_file)))) if both else None
         detection = in_child(run_detection, ours_file, args.mm_per_px) if ours["ok"] else {"ok": False}
-    results = {"mm_per_px": args.mm_per_px, "plate_ours": ours, "plate_opencv": cv, "panel_ours": mesh,
-               "plate_mean_abs_difference_grey": difference, "detection": detection,
-               "ratios": {k: round(ours[k] / cv[k], 3) if both else None for k in ("seconds", "peak_mib")}}
+    results = {
+        "mm_per_px": args.mm_per_px,
+        "plate_ours": ours,
+        "plate_opencv": cv,
+        "panel_ours": mesh,
+        "plate_mean_abs_difference_grey": difference,
+        "detection": detection,
+        "ratios": {k: round(ours[k] / cv[k], 3) if both else None for k in ("seconds", "peak_mib")},
+    }
     print(f"rectification onto {ours.get('size')} px at {args.mm_per_px} mm/px, one {FRAME[0]}x{FRAME[1]} photo")
     for name, r in (("plate, ours", ours), ("plate, OpenCV undistort+warpPerspective", cv), ("panel mesh, ours", mesh)):
         print(f"  {name:42s} {r['seconds']:7.2f} s  peak {r['peak_mib']:7.0f} MiB")
-    print(f"  ratio ours/OpenCV (plate): time {results['ratios']['seconds']}, memory {results['ratios']['peak_mib']}; "
-          f"mean |difference| {difference:.2f} grey levels" if both else "  no ratio: a run failed")
+    print(
+        f"  ratio ours/OpenCV (plate): time {results['ratios']['seconds']}, memory {results['ratios']['peak_mib']}; "
+        f"mean |difference| {difference:.2f} grey levels"
+        if both
+        else "  no ratio: a run failed"
+    )
     if detection["ok"]:
-        print(f"detection {detection['detect_s_per_mpx']:.2f} s/MPx, measurement {detection['measure_s_per_mpx']:.2f}"
-              f" s/MPx on {detection['megapixels']:.1f} MPx ({detection['cracks']} cracks), "
-              f"peak {detection['peak_mib']:.0f} MiB")
+        print(
+            f"detection {detection['detect_s_per_mpx']:.2f} s/MPx, measurement {detection['measure_s_per_mpx']:.2f}"
+            f" s/MPx on {detection['megapixels']:.1f} MPx ({detection['cracks']} cracks), "
+            f"peak {detection['peak_mib']:.0f} MiB"
+        )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return 0

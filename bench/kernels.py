@@ -109,7 +109,8 @@ def match_case(n: int, dim: int, masked: bool, who: str) -> dict[str, Any]:
 
 def cases(large: bool) -> list[tuple[str, Any, tuple[Any, ...]]]:
     out: list[tuple[str, Any, tuple[Any, ...]]] = [
-        (f"Harris {h}x{w}", harris_case, (h, w)) for h, w in ((2000, 2000), (8000, 8000), (1800, 75000))]
+        (f"Harris {h}x{w}", harris_case, (h, w)) for h, w in ((2000, 2000), (8000, 8000), (1800, 75000))
+    ]
     sift_sizes = ((600, 800), (1336, 2008), (2672, 4016)) if large else ((600, 800), (1336, 2008))
     out += [(f"SIFT {h}x{w}", sift_case, (h, w)) for h, w in sift_sizes]
     sizes = (1000, 10000, 20000) if large else (1000, 10000)
@@ -122,8 +123,9 @@ def cases(large: bool) -> list[tuple[str, Any, tuple[Any, ...]]]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--large", action="store_true",
-                        help="also SIFT on 4016x2672 and 20k x 20k matching (slow on a CPU)")
+    parser.add_argument(
+        "--large", action="store_true", help="also SIFT on 4016x2672 and 20k x 20k matching (slow on a CPU)"
+    )
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
     args = parser.parse_args(argv)
     rows = []
@@ -132,8 +134,10 @@ def main(argv: list[str] | None = None) -> int:
         ours, cv = in_child(fn, *params, "ours"), in_child(fn, *params, "opencv")
         ratio = ours["seconds"] / cv["seconds"]
         rows.append({"case": name, "ours": ours, "opencv": cv, "ratio_time": ratio})
-        print(f"{name:30}{ours['seconds']:10.4f}{cv['seconds']:10.4f}{ratio:8.2f}"
-              f"{ours['peak_mib']:10.0f}{cv['peak_mib']:11.0f}  {ours.get('backend', '?')}")
+        print(
+            f"{name:30}{ours['seconds']:10.4f}{cv['seconds']:10.4f}{ratio:8.2f}"
+            f"{ours['peak_mib']:10.0f}{cv['peak_mib']:11.0f}  {ours.get('backend', '?')}"
+        )
     if all(r["ours"].get("backend") == "numpy" for r in rows):
         print("GPU rows: not measured (no CUDA device on this machine)")
     if args.json:

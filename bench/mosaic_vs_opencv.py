@@ -43,14 +43,24 @@ def run_ours(src: str, working_max_px: int) -> dict[str, Any]:
         try:
             report = process_directory(Path(src), Path(out), {"working_max_px": working_max_px})
         except Exception as exc:  # a benchmark reports the failure instead of dying
-            return {"ok": False, "status": f"{type(exc).__name__}: {exc}",
-                    "seconds": time.perf_counter() - started, "peak_mib": peak_rss_mib()}
+            return {
+                "ok": False,
+                "status": f"{type(exc).__name__}: {exc}",
+                "seconds": time.perf_counter() - started,
+                "peak_mib": peak_rss_mib(),
+            }
         seconds = time.perf_counter() - started
     used = report.get("frames_used")
-    return {"ok": True, "status": "ok", "seconds": seconds, "peak_mib": peak_rss_mib(),
-            "size": [report["mosaic"]["width"], report["mosaic"]["height"]],
-            "frames_used": len(used) if isinstance(used, list) else used,  # the report lists them
-            "tie_point_rms_px": report.get("tie_point_rms_px"), "stage_seconds": report.get("stage_seconds")}
+    return {
+        "ok": True,
+        "status": "ok",
+        "seconds": seconds,
+        "peak_mib": peak_rss_mib(),
+        "size": [report["mosaic"]["width"], report["mosaic"]["height"]],
+        "frames_used": len(used) if isinstance(used, list) else used,  # the report lists them
+        "tie_point_rms_px": report.get("tie_point_rms_px"),
+        "stage_seconds": report.get("stage_seconds"),
+    }
 
 
 def load_resized(path: Path, max_px: int) -> Any:
@@ -62,8 +72,7 @@ def load_resized(path: Path, max_px: int) -> Any:
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA) if scale < 1.0 else img
 
 
-STITCH_STATUS = {0: "OK", 1: "ERR_NEED_MORE_IMGS", 2: "ERR_HOMOGRAPHY_EST_FAIL",
-                 3: "ERR_CAMERA_PARAMS_ADJUST_FAIL"}
+STITCH_STATUS = {0: "OK", 1: "ERR_NEED_MORE_IMGS", 2: "ERR_HOMOGRAPHY_EST_FAIL", 3: "ERR_CAMERA_PARAMS_ADJUST_FAIL"}
 
 
 def run_opencv(src: str, working_max_px: int) -> dict[str, Any]:
@@ -78,8 +87,12 @@ def run_opencv(src: str, working_max_px: int) -> dict[str, Any]:
     if ok:
         with tempfile.TemporaryDirectory() as out:
             cv2.imwrite(str(Path(out) / "pano.tif"), pano)
-    result = {"ok": ok, "status": f"{status} {STITCH_STATUS.get(status, '')}",
-              "seconds": time.perf_counter() - started, "peak_mib": peak_rss_mib()}
+    result = {
+        "ok": ok,
+        "status": f"{status} {STITCH_STATUS.get(status, '')}",
+        "seconds": time.perf_counter() - started,
+        "peak_mib": peak_rss_mib(),
+    }
     if ok:
         result.update(size=[pano.shape[1], pano.shape[0]], frames_used=len(stitcher.component()))
     return result
@@ -108,8 +121,12 @@ def in_child(fn: Any, *args: Any) -> dict[str, Any]:
         result = recv.recv()
     except EOFError:  # killed (out of memory?) before it could answer
         proc.join()
-        return {"ok": False, "status": f"child died, exit code {proc.exitcode}",
-                "seconds": float("nan"), "peak_mib": float("nan")}
+        return {
+            "ok": False,
+            "status": f"child died, exit code {proc.exitcode}",
+            "seconds": float("nan"),
+            "peak_mib": float("nan"),
+        }
     proc.join()
     return result
 
@@ -125,11 +142,13 @@ def print_table(ours: dict[str, Any], cv: dict[str, Any]) -> None:
         return "x".join(map(str, r["size"])) if "size" in r else "-"
 
     r = {k: "-" if v is None else f"{v:.2f}" for k, v in ratios(ours, cv).items()}
-    rows = [("wall time, s", f"{ours['seconds']:.2f}", f"{cv['seconds']:.2f}", r["seconds"]),
-            ("peak RSS, MiB", f"{ours['peak_mib']:.0f}", f"{cv['peak_mib']:.0f}", r["peak_mib"]),
-            ("output size, px", size(ours), size(cv), ""),
-            ("frames used", str(ours.get("frames_used", "-")), str(cv.get("frames_used", "-")), ""),
-            ("status", ours["status"][:20], cv["status"][:20], "")]
+    rows = [
+        ("wall time, s", f"{ours['seconds']:.2f}", f"{cv['seconds']:.2f}", r["seconds"]),
+        ("peak RSS, MiB", f"{ours['peak_mib']:.0f}", f"{cv['peak_mib']:.0f}", r["peak_mib"]),
+        ("output size, px", size(ours), size(cv), ""),
+        ("frames used", str(ours.get("frames_used", "-")), str(cv.get("frames_used", "-")), ""),
+        ("status", ours["status"][:20], cv["status"][:20], ""),
+    ]
     print(f"{'':18}{'ours':>22}{'OpenCV':>22}{'ours/OpenCV':>14}")
     for name, a, b, q in rows:
         print(f"{name:18}{a:>22}{b:>22}{q:>14}")
@@ -145,8 +164,12 @@ def print_table(ours: dict[str, Any], cv: dict[str, Any]) -> None:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dir", nargs="?", type=Path, default=DEFAULT_DIR, help="folder of frames")
-    parser.add_argument("--working-max-px", type=int, default=None,
-                        help="longest side of the working frames, both runs (default: the pipeline's)")
+    parser.add_argument(
+        "--working-max-px",
+        type=int,
+        default=None,
+        help="longest side of the working frames, both runs (default: the pipeline's)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
     return parser.parse_args(argv)
 
@@ -160,14 +183,22 @@ def main(argv: list[str] | None = None) -> int:
 
         args.working_max_px = MosaicConfig().working_max_px
     n = len(image_paths(args.dir))
-    print(f"{n} frames from {args.dir}, both runs at {args.working_max_px} px on the longest side "
-          "(OpenCV gets frames resized beforehand: same input, fair comparison); one child process each")
+    print(
+        f"{n} frames from {args.dir}, both runs at {args.working_max_px} px on the longest side "
+        "(OpenCV gets frames resized beforehand: same input, fair comparison); one child process each"
+    )
     ours = in_child(run_ours, str(args.dir), args.working_max_px)
     cv = in_child(run_opencv, str(args.dir), args.working_max_px)
     print_table(ours, cv)
     if args.json:
-        figures = {"dir": str(args.dir), "frames": n, "working_max_px": args.working_max_px,
-                   "ours": ours, "opencv": cv, "ratios_ours_over_opencv": ratios(ours, cv)}
+        figures = {
+            "dir": str(args.dir),
+            "frames": n,
+            "working_max_px": args.working_max_px,
+            "ours": ours,
+            "opencv": cv,
+            "ratios_ours_over_opencv": ratios(ours, cv),
+        }
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
     return 0
 

@@ -1,4 +1,4 @@
-"""Our photo-triangulation (``workers.algorithms.reconstruction.reconstruct``) against COLMAP's incremental
+"""Our photo-triangulation (``workers.algorithms.sfm.reconstruction.reconstruct``) against COLMAP's incremental
 mapper (``pycolmap.incremental_mapping``) on the same features and verified matches.
 
 Run by hand from the repository root (never in CI)::
@@ -48,8 +48,9 @@ def prepare(images: Path, db: Path, max_px: int, features: int) -> dict[str, Any
     options = pycolmap.FeatureExtractionOptions()
     options.max_image_size, options.sift.max_num_features = max_px, features
     started = time.perf_counter()
-    pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              extraction_options=options)
+    pycolmap.extract_features(
+        db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=options
+    )
     extracted = time.perf_counter()
     database = pycolmap.Database.open(db)
     for camera in database.read_all_cameras():  # the same EXIF focal length prior as ours, before verification
@@ -87,8 +88,9 @@ def read_database(db: Path, names: list[str]) -> tuple[list[Any], dict]:
         inliers = np.asarray(geometry.inlier_matches)
         if len(inliers) >= 15:
             i, j = index[a], index[b]
-            matches[(i, j) if i < j else (j, i)] = (inliers[:, 0], inliers[:, 1]) if i < j else (inliers[:, 1],
-                                                                                               inliers[:, 0])
+            matches[(i, j) if i < j else (j, i)] = (
+                (inliers[:, 0], inliers[:, 1]) if i < j else (inliers[:, 1], inliers[:, 0])
+            )
     database.close()
     return keypoints, matches
 
@@ -117,20 +119,25 @@ def run_colmap(db: str, images: str, names: list[str]) -> dict[str, Any]:
             if projected is not None:
                 squares.append(float(((projected - image.points2D[element.point2D_idx].xy) ** 2).sum()))
     camera = next(iter(model.cameras.values()))
-    return {"ok": True, "status": f"{len(models)} model(s)", "seconds": seconds, "registered": model.num_reg_images(),
-            "total": len(names), "points": model.num_points3D(), "observations": len(squares),
-            "rms_px": (sum(squares) / max(len(squares), 1)) ** 0.5,
-            "focal_ratio": float(camera.params[0]) / exif_focal_px(Path(images) / names[0])}
+    return {
+        "ok": True,
+        "status": f"{len(models)} model(s)",
+        "seconds": seconds,
+        "registered": model.num_reg_images(),
+        "total": len(names),
+        "points": model.num_points3D(),
+        "observations": len(squares),
+        "rms_px": (sum(squares) / max(len(squares), 1)) ** 0.5,
+        "focal_ratio": float(camera.params[0]) / exif_focal_px(Path(images) / names[0]),
+    }
 
 
 def run_ours(db: str, images: str, names: list[str], dataset: str) -> dict[str, Any]:
     """Child: ``reconstruct`` on the database's keypoints and verified matches, with EXIF GPS (+ attitude)."""
     import numpy as np
 
-    from workers.algorithms.camera import Camera
-    from workers.algorithms.gcp import LocalFrame
-    from workers.algorithms.georef import lonlat_to_utm, utm_epsg
-    from workers.algorithms.reconstruction import Attitude, GpsFix, ReconstructionOptions, reconstruct
+    from workers.algorithms.geometry import Camera, lonlat_to_utm, utm_epsg
+    from workers.algorithms.sfm import Attitude, GpsFix, LocalFrame, ReconstructionOptions, reconstruct
     from workers.image_meta import inspect_image
 
     keypoints, matches = read_database(Path(db), names)
@@ -143,17 +150,35 @@ def run_ours(db: str, images: str, names: list[str], dataset: str) -> dict[str, 
     enu = LocalFrame(epsg, float(e0), float(n0)).from_lonlat(lla)
     sigma = (3.0, 5.0) if dataset == "brighton" else (5.0, 100.0)
     gps = {k: GpsFix(tuple(enu[k]), *sigma) for k in range(len(names))}
-    attitude = {k: Attitude(m["yaw"], m["pitch"], m["roll"] or 0.0) for k, m in enumerate(metas)
-                if m.get("yaw") is not None and m.get("pitch") is not None}
+    attitude = {
+        k: Attitude(m["yaw"], m["pitch"], m["roll"] or 0.0)
+        for k, m in enumerate(metas)
+        if m.get("yaw") is not None and m.get("pitch") is not None
+    }
     started = time.perf_counter()
-    rec = reconstruct(keypoints, matches, Camera(w, h, f, f, (w - 1) / 2, (h - 1) / 2), gps=gps, attitude=attitude,
-                      frame_names=names, options=ReconstructionOptions(refine_focal=True, refine_k1=True))
+    rec = reconstruct(
+        keypoints,
+        matches,
+        Camera(w, h, f, f, (w - 1) / 2, (h - 1) / 2),
+        gps=gps,
+        attitude=attitude,
+        frame_names=names,
+        options=ReconstructionOptions(refine_focal=True, refine_k1=True),
+    )
     seconds = time.perf_counter() - started
     report = rec.report
-    return {"ok": True, "status": report.get("initialisation", ""), "seconds": seconds,
-            "registered": report["frames"]["registered"], "total": len(names), "points": report["points"],
-            "observations": report.get("observations", 0), "rms_px": report["rms_reprojection_px"],
-            "focal_ratio": rec.camera.fx / f, "k1": rec.camera.k1}
+    return {
+        "ok": True,
+        "status": report.get("initialisation", ""),
+        "seconds": seconds,
+        "registered": report["frames"]["registered"],
+        "total": len(names),
+        "points": report["points"],
+        "observations": report.get("observations", 0),
+        "rms_px": report["rms_reprojection_px"],
+        "focal_ratio": rec.camera.fx / f,
+        "k1": rec.camera.k1,
+    }
 
 
 def in_child(target: Any, *args: Any) -> dict[str, Any]:
@@ -168,14 +193,18 @@ def in_child(target: Any, *args: Any) -> dict[str, Any]:
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = (f"{'dataset':9} {'mapper':7} {'seconds':>8} {'registered':>10} {'points':>7} {'obs':>7} {'RMS px':>7}"
-            f" {'f/EXIF':>6}  status")
+    head = (
+        f"{'dataset':9} {'mapper':7} {'seconds':>8} {'registered':>10} {'points':>7} {'obs':>7} {'RMS px':>7}"
+        f" {'f/EXIF':>6}  status"
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
         reg = f"{r.get('registered', '-')}/{r.get('total', '-')}"
-        lines.append(f"{r['dataset']:9} {r['mapper']:7} {r.get('seconds', float('nan')):8.2f} {reg:>10} "
-                     f"{r.get('points', '-'):>7} {r.get('observations', '-'):>7} {r.get('rms_px') or float('nan'):7.3f}"
-                     f" {r.get('focal_ratio') or float('nan'):6.3f}  {r['status']}")
+        lines.append(
+            f"{r['dataset']:9} {r['mapper']:7} {r.get('seconds', float('nan')):8.2f} {reg:>10} "
+            f"{r.get('points', '-'):>7} {r.get('observations', '-'):>7} {r.get('rms_px') or float('nan'):7.3f}"
+            f" {r.get('focal_ratio') or float('nan'):6.3f}  {r['status']}"
+        )
     return "\n".join(lines)
 
 
@@ -185,8 +214,10 @@ def ratios(rows: list[dict[str, Any]]) -> str:
         ours = next(r for r in rows if r["dataset"] == name and r["mapper"] == "ours")
         ref = next(r for r in rows if r["dataset"] == name and r["mapper"] == "colmap")
         if ours["ok"] and ref["ok"] and ours.get("rms_px") and ref.get("rms_px"):
-            lines.append(f"{name:9} time {ours['seconds'] / ref['seconds']:.2f}  registered "
-                         f"{ours['registered']}/{ref['registered']}  RMS {ours['rms_px'] / ref['rms_px']:.2f}")
+            lines.append(
+                f"{name:9} time {ours['seconds'] / ref['seconds']:.2f}  registered "
+                f"{ours['registered']}/{ref['registered']}  RMS {ours['rms_px'] / ref['rms_px']:.2f}"
+            )
     return "\n".join(lines)
 
 

@@ -34,8 +34,14 @@ def block_rows(n_b: int, memory_budget: int) -> int:
     return max(1, memory_budget // (BYTES_PER_PAIR * max(n_b, 1)))
 
 
-def match_descriptors(desc_a: Any, desc_b: Any, ratio: float = 0.8, mutual: bool = True,
-                      allowed: MaskFn | None = None, memory_budget: int = 256 * 2**20) -> Matches:
+def match_descriptors(
+    desc_a: Any,
+    desc_b: Any,
+    ratio: float = 0.8,
+    mutual: bool = True,
+    allowed: MaskFn | None = None,
+    memory_budget: int = 256 * 2**20,
+) -> Matches:
     """Match rows of ``desc_a`` (Na, D) to rows of ``desc_b`` (Nb, D), float32.
 
     A row matches its nearest allowed neighbour when that is closer than ``ratio`` times the second

@@ -48,8 +48,9 @@ def epipole_residuals(e: Any, p1: Any, p2: Any) -> Any:
     return 0.5 * (d1 + d2)
 
 
-def ransac_epipole(p1: Any, p2: Any, threshold_px: float = 1.0, hypotheses: int = 500, seed: int = 0,
-                   chunk: int = 256) -> Epipole:
+def ransac_epipole(
+    p1: Any, p2: Any, threshold_px: float = 1.0, hypotheses: int = 500, seed: int = 0, chunk: int = 256
+) -> Epipole:
     """Robust epipole of matches ``p1`` -> ``p2``, (N, 2) pixel (x, y), for a purely translating camera.
 
     ``threshold_px`` is the inlier distance to the epipolar line, in pixels.
@@ -66,8 +67,12 @@ def ransac_epipole(p1: Any, p2: Any, threshold_px: float = 1.0, hypotheses: int 
     samples = xp.asarray(np.random.default_rng(seed).choice(n, size=(hypotheses, 2)))  # host RNG: same on any device
     candidates = xp.cross(lines[samples[:, 0]], lines[samples[:, 1]])
     candidates /= xp.maximum(xp.linalg.norm(candidates, axis=1, keepdims=True), 1e-12)
-    counts = xp.concatenate([(epipole_residuals(candidates[k:k + chunk], h1, h2) < threshold).sum(axis=1)
-                             for k in range(0, hypotheses, chunk)])
+    counts = xp.concatenate(
+        [
+            (epipole_residuals(candidates[k : k + chunk], h1, h2) < threshold).sum(axis=1)
+            for k in range(0, hypotheses, chunk)
+        ]
+    )
     e = candidates[int(counts.argmax())]
     for _ in range(3):  # refine on the inliers, then re-select them
         inliers = epipole_residuals(e[None], h1, h2)[0] < threshold
@@ -91,4 +96,3 @@ def _homogeneous(points: Any) -> Any:
     xp = get_array_module(points)
     pts = points.astype(xp.float64)
     return xp.concatenate([pts, xp.ones((len(pts), 1))], axis=1)
-

@@ -34,8 +34,9 @@ class Corners:
     response: Any
 
 
-def harris_response(image: Any, k: float = 0.04, window: Literal["gaussian", "box"] = "gaussian",
-                    scale: float = 1.0) -> Any:
+def harris_response(
+    image: Any, k: float = 0.04, window: Literal["gaussian", "box"] = "gaussian", scale: float = 1.0
+) -> Any:
     """Harris response of an (H, W) image (any real dtype; computed in float32).
 
     ``window="box", scale=1 / (4 * 3 * 255)`` reproduces ``cv2.cornerHarris(img8, 3, 3, k)``: OpenCV
@@ -94,9 +95,17 @@ def cap_per_cell(corners: Corners, shape: tuple[int, int], cell_px: int, per_cel
     return Corners(corners.xy[keep], corners.response[keep])
 
 
-def harris_corners(image: Any, radius: int = 3, threshold: float = 1e-4, k: float = 0.04,
-                   window: Literal["gaussian", "box"] = "gaussian", scale: float | None = None,
-                   cell_px: int | None = None, per_cell: int = 8, tile: int | None = None) -> Corners:
+def harris_corners(
+    image: Any,
+    radius: int = 3,
+    threshold: float = 1e-4,
+    k: float = 0.04,
+    window: Literal["gaussian", "box"] = "gaussian",
+    scale: float | None = None,
+    cell_px: int | None = None,
+    per_cell: int = 8,
+    tile: int | None = None,
+) -> Corners:
     """Corners of an (H, W) image: response, suppression, compaction, optional per-cell cap.
 
     ``scale`` defaults to 1/255 for 8-bit input (so ``threshold`` means the same for 8-bit and
@@ -116,8 +125,9 @@ def harris_corners(image: Any, radius: int = 3, threshold: float = 1e-4, k: floa
     return corners
 
 
-def _tiled(image: Any, tile: int, radius: int, threshold: float, k: float, window: Literal["gaussian", "box"],
-           scale: float) -> Corners:
+def _tiled(
+    image: Any, tile: int, radius: int, threshold: float, k: float, window: Literal["gaussian", "box"], scale: float
+) -> Corners:
     # The response at a pixel depends on pixels up to 2 away (Sobel + window), the suppression on
     # responses up to ``radius`` away: a margin of radius + 2 makes every tile's core exact. Image
     # borders stay image borders (mirror), because the margin is clipped to the image.

@@ -45,8 +45,9 @@ def window_descriptors(image: Any, xy: Any, half: int) -> tuple[Any, Any]:
     return windows / xp.maximum(norm, 1e-12), kept
 
 
-def match_ncc(desc_a: Any, desc_b: Any, threshold: float = 0.8, mutual: bool = True,
-              allowed: Any | None = None) -> NccMatches:
+def match_ncc(
+    desc_a: Any, desc_b: Any, threshold: float = 0.8, mutual: bool = True, allowed: Any | None = None
+) -> NccMatches:
     """Best NCC partner of every row of ``desc_a`` among the allowed columns of ``desc_b``.
 
     ``allowed`` (Na, Nb) bool is applied before the argmax, so a forbidden pair can never win. A match

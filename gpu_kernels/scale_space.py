@@ -45,8 +45,14 @@ def octave_count(height: int, width: int, first_octave: int, min_size: int = 8) 
     return max(1, int(math.floor(math.log2(min(height, width) / min_size))) - first_octave + 1)
 
 
-def scale_space(image: Any, first_octave: int = -1, octaves: int | None = None, levels: int = 3,
-                sigma0: float = 1.6, assumed_blur: float = 0.5) -> Iterator[Octave]:
+def scale_space(
+    image: Any,
+    first_octave: int = -1,
+    octaves: int | None = None,
+    levels: int = 3,
+    sigma0: float = 1.6,
+    assumed_blur: float = 0.5,
+) -> Iterator[Octave]:
     """Yield the octaves of an (H, W) image (uint8 or float), from ``first_octave`` upwards.
 
     ``assumed_blur`` is the blur the camera already gave the input, in input pixels.

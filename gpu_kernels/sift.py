@@ -49,9 +49,19 @@ class Keypoints:
     descriptors: Any
 
 
-def sift(image: Any, first_octave: int = -1, octaves: int | None = None, levels: int = 3, sigma0: float = 1.6,
-         contrast_threshold: float = 0.04, edge_threshold: float = 10.0, max_orientations: int = 4,
-         layout: tuple[int, int] = (4, 8), max_features: int | None = None, chunk: int = 256) -> Keypoints:
+def sift(
+    image: Any,
+    first_octave: int = -1,
+    octaves: int | None = None,
+    levels: int = 3,
+    sigma0: float = 1.6,
+    contrast_threshold: float = 0.04,
+    edge_threshold: float = 10.0,
+    max_orientations: int = 4,
+    layout: tuple[int, int] = (4, 8),
+    max_features: int | None = None,
+    chunk: int = 256,
+) -> Keypoints:
     """Detect and describe SIFT keypoints of an (H, W) grey image (uint8 or float in [0, 1])."""
     xp = get_array_module(image)
     parts = []
@@ -64,11 +74,17 @@ def sift(image: Any, first_octave: int = -1, octaves: int | None = None, levels:
         angles, owner = _orientations(octave, x, y, s_int, _octave_sigma(s_float, levels, sigma0), max_orientations)
         x, y, s_float, s_int, contrast = x[owner], y[owner], s_float[owner], s_int[owner], contrast[owner]
         desc = _descriptors(octave, x, y, s_int, _octave_sigma(s_float, levels, sigma0), angles, layout, chunk)
-        parts.append(Keypoints(
-            xy=xp.stack([x, y], axis=1).astype(xp.float64) * octave.spacing + offset,
-            sigma=(_octave_sigma(s_float, levels, sigma0) * octave.spacing).astype(xp.float32),
-            angle=angles, octave=xp.full(len(x), octave.index, xp.int32),
-            sign=xp.sign(contrast).astype(xp.int8), response=xp.abs(contrast), descriptors=desc))
+        parts.append(
+            Keypoints(
+                xy=xp.stack([x, y], axis=1).astype(xp.float64) * octave.spacing + offset,
+                sigma=(_octave_sigma(s_float, levels, sigma0) * octave.spacing).astype(xp.float32),
+                angle=angles,
+                octave=xp.full(len(x), octave.index, xp.int32),
+                sign=xp.sign(contrast).astype(xp.int8),
+                response=xp.abs(contrast),
+                descriptors=desc,
+            )
+        )
     return _concat(parts, xp, layout, max_features)
 
 
@@ -76,8 +92,9 @@ def _octave_sigma(s: Any, levels: int, sigma0: float) -> Any:
     return sigma0 * 2.0 ** (s / levels)
 
 
-def _octave_keypoints(octave: Octave, levels: int, sigma0: float, contrast_threshold: float,
-                      edge_threshold: float) -> tuple[Any, ...] | None:
+def _octave_keypoints(
+    octave: Octave, levels: int, sigma0: float, contrast_threshold: float, edge_threshold: float
+) -> tuple[Any, ...] | None:
     """Refined extrema of one octave: (x, y, s) sub-pixel, s rounded, contrast; None when there are none."""
     xp = get_array_module(octave.dog)
     dog = octave.dog
@@ -95,8 +112,9 @@ def _octave_keypoints(octave: Octave, levels: int, sigma0: float, contrast_thres
     return _refine(dog, s, y, x, levels, contrast_threshold, edge_threshold)
 
 
-def _refine(dog: Any, s: Any, y: Any, x: Any, levels: int, contrast_threshold: float,
-            edge_threshold: float) -> tuple[Any, ...] | None:
+def _refine(
+    dog: Any, s: Any, y: Any, x: Any, levels: int, contrast_threshold: float, edge_threshold: float
+) -> tuple[Any, ...] | None:
     xp = get_array_module(dog)
     n_s, h, w = dog.shape
     alive = xp.ones(len(s), bool)
@@ -193,8 +211,9 @@ def _orientations(octave: Octave, x: Any, y: Any, s_int: Any, sigma: Any, max_or
     return angle.astype(xp.float32), owner
 
 
-def _descriptors(octave: Octave, x: Any, y: Any, s_int: Any, sigma: Any, angle: Any, layout: tuple[int, int],
-                 chunk: int) -> Any:
+def _descriptors(
+    octave: Octave, x: Any, y: Any, s_int: Any, sigma: Any, angle: Any, layout: tuple[int, int], chunk: int
+) -> Any:
     xp = get_array_module(x)
     d, n = layout
     out = xp.zeros((len(x), d * d * n), xp.float32)
@@ -206,7 +225,7 @@ def _descriptors(octave: Octave, x: Any, y: Any, s_int: Any, sigma: Any, angle: 
         for lvl in np.unique(to_host(s_int[group])).tolist():
             members = group[s_int[group] == lvl]
             for start in range(0, len(members), chunk):
-                k = members[start:start + chunk]
+                k = members[start : start + chunk]
                 out[k] = _describe(octave.gaussians[lvl], cx[k], cy[k], hist_width[k], angle[k], int(rad), d, n)
     return out
 
@@ -246,8 +265,15 @@ def _concat(parts: list[Keypoints], xp: Any, layout: tuple[int, int], max_featur
     d, n = layout
     if not parts:
         z = xp.zeros(0, xp.float32)
-        return Keypoints(xp.zeros((0, 2), xp.float64), z, z, xp.zeros(0, xp.int32), xp.zeros(0, xp.int8), z,
-                         xp.zeros((0, d * d * n), xp.float32))
+        return Keypoints(
+            xp.zeros((0, 2), xp.float64),
+            z,
+            z,
+            xp.zeros(0, xp.int32),
+            xp.zeros(0, xp.int8),
+            z,
+            xp.zeros((0, d * d * n), xp.float32),
+        )
     fields = {f: xp.concatenate([getattr(p, f) for p in parts]) for f in Keypoints.__dataclass_fields__}
     order = xp.argsort(-fields["response"], kind="stable")
     if max_features is not None:
@@ -255,8 +281,14 @@ def _concat(parts: list[Keypoints], xp: Any, layout: tuple[int, int], max_featur
     return Keypoints(**{f: v[order] for f, v in fields.items()})
 
 
-def tile_margin(octaves: int, first_octave: int = -1, levels: int = 3, sigma0: float = 1.6,
-                layout: tuple[int, int] = (4, 8), assumed_blur: float = 0.5) -> int:
+def tile_margin(
+    octaves: int,
+    first_octave: int = -1,
+    levels: int = 3,
+    sigma0: float = 1.6,
+    layout: tuple[int, int] = (4, 8),
+    assumed_blur: float = 0.5,
+) -> int:
     """Input pixels around a tile on which every keypoint of the tile's core depends: the chain of
     Gaussian blurs through the octaves, then the DoG, refinement and descriptor windows."""
     sigmas = [sigma0 * 2.0 ** (s / levels) for s in range(levels + 3)]
@@ -269,8 +301,17 @@ def tile_margin(octaves: int, first_octave: int = -1, levels: int = 3, sigma0: f
     return int(math.ceil(blur + 2.0**top * window)) + 2
 
 
-def sift_tiled(image: Any, tile: int, octaves: int, first_octave: int = -1, levels: int = 3, sigma0: float = 1.6,
-               layout: tuple[int, int] = (4, 8), max_features: int | None = None, **options: Any) -> Keypoints:
+def sift_tiled(
+    image: Any,
+    tile: int,
+    octaves: int,
+    first_octave: int = -1,
+    levels: int = 3,
+    sigma0: float = 1.6,
+    layout: tuple[int, int] = (4, 8),
+    max_features: int | None = None,
+    **options: Any,
+) -> Keypoints:
     """``sift(image, octaves=octaves, ...)`` computed tile by tile, for images too large for one pass.
 
     Tiles start on the coarsest octave's pixel grid and carry ``tile_margin`` of context, so every
@@ -288,8 +329,15 @@ def sift_tiled(image: Any, tile: int, octaves: int, first_octave: int = -1, leve
     for y0 in range(0, h, tile):
         for x0 in range(0, w, tile):
             ya, xa = max(y0 - margin, 0), max(x0 - margin, 0)
-            found = sift(image[ya:min(y0 + tile + margin, h), xa:min(x0 + tile + margin, w)], first_octave, octaves,
-                         levels, sigma0, layout=layout, **options)
+            found = sift(
+                image[ya : min(y0 + tile + margin, h), xa : min(x0 + tile + margin, w)],
+                first_octave,
+                octaves,
+                levels,
+                sigma0,
+                layout=layout,
+                **options,
+            )
             x, y = found.xy[:, 0] + xa, found.xy[:, 1] + ya
             core = (x >= x0 - 0.5) & (x < x0 + tile - 0.5) & (y >= y0 - 0.5) & (y < y0 + tile - 0.5)
             fields = {f: getattr(found, f)[core] for f in Keypoints.__dataclass_fields__}

@@ -33,7 +33,7 @@ if [ ! -f "$stamp" ]; then
   touch "$stamp"
 fi
 
-if [ ! -f web/node_modules/leaflet/dist/leaflet.js ] || [ ! -f web/node_modules/swagger-ui-dist/swagger-ui-bundle.js ]; then
+if [ ! -f web/node_modules/leaflet/dist/leaflet.js ] || [ ! -f web/node_modules/swagger-ui-dist/swagger-ui-bundle.js ] || [ ! -x web/node_modules/.bin/eslint ]; then
   npm install --prefix web --no-audit --no-fund --loglevel=error >/dev/null
 fi
 echo "setup: ready"

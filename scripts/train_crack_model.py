@@ -8,7 +8,7 @@ service does not: its inference is NumPy/OpenCV, and a unit test checks the NumP
 :class:`TorchCrackNet`. Deterministic (seeded NumPy and torch, one thread, deterministic kernels): two runs
 wrote identical weights. Only the training split, images 001-040, fits weights and chooses anything:
 
-1. the features of every image (:func:`~workers.algorithms.cracks.pixel_features`) and of its
+1. the features of every image (:func:`~workers.algorithms.cracks.detection.pixel_features`) and of its
    ``AUGMENTATIONS`` are computed once;
 2. the auto-context MLPs are fitted in NumPy on the full-resolution filter bank: stage 1 in inner folds,
    whose out-of-fold maps feed stage 2's context channels (Tu & Bai 2010), then stage 1 on all images;
@@ -115,8 +115,9 @@ def augmented(image: np.ndarray, mask: np.ndarray, kind: str, value: float) -> t
     return resized, cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_LINEAR) >= 0.5
 
 
-def sample_pixels(features: dict[int, np.ndarray], masks: dict[int, np.ndarray], ids: list[int],
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def sample_pixels(
+    features: dict[int, np.ndarray], masks: dict[int, np.ndarray], ids: list[int], rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """All crack pixels of ``ids`` and ``NEGATIVES_PER_POSITIVE`` times as many random background pixels."""
     xs, ys = [], []
     for i in ids:
@@ -133,25 +134,28 @@ def fit_mlp(x: np.ndarray, y: np.ndarray, seed: int, lr: float = 3e-3, batch: in
     rng = np.random.default_rng(seed)
     mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-6
     xn, f = (x - mean) / scale, x.shape[1]
-    params = {"w1": rng.standard_normal((f, HIDDEN)).astype(np.float32) * np.float32(np.sqrt(2 / f)),
-              "b1": np.zeros(HIDDEN, np.float32),
-              "w2": rng.standard_normal(HIDDEN).astype(np.float32) * np.float32(np.sqrt(1 / HIDDEN)),
-              "b2": np.zeros((), np.float32)}
+    params = {
+        "w1": rng.standard_normal((f, HIDDEN)).astype(np.float32) * np.float32(np.sqrt(2 / f)),
+        "b1": np.zeros(HIDDEN, np.float32),
+        "w2": rng.standard_normal(HIDDEN).astype(np.float32) * np.float32(np.sqrt(1 / HIDDEN)),
+        "b2": np.zeros((), np.float32),
+    }
     moment1 = {k: np.zeros_like(v) for k, v in params.items()}
     moment2 = {k: np.zeros_like(v) for k, v in params.items()}
     step = 0
     for _ in range(EPOCHS):
         order = rng.permutation(len(x))
         for start in range(0, len(x), batch):
-            rows = order[start:start + batch]
+            rows = order[start : start + batch]
             step += 1
             for k, g in _gradients(params, xn[rows], y[rows]).items():
                 moment1[k] = 0.9 * moment1[k] + 0.1 * g
                 moment2[k] = 0.999 * moment2[k] + 0.001 * g * g
                 update = (moment1[k] / (1 - 0.9**step)) / (np.sqrt(moment2[k] / (1 - 0.999**step)) + 1e-8)
                 params[k] = (params[k] - lr * update).astype(np.float32)
-    return PixelMLP(mean.astype(np.float32), scale.astype(np.float32), params["w1"], params["b1"], params["w2"],
-                    params["b2"])
+    return PixelMLP(
+        mean.astype(np.float32), scale.astype(np.float32), params["w1"], params["b1"], params["w2"], params["b2"]
+    )
 
 
 def _gradients(params: dict[str, np.ndarray], x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
@@ -175,8 +179,9 @@ def with_context(base: np.ndarray, stage1: PixelMLP) -> np.ndarray:
     return np.concatenate([base, context_features(stage1.predict(base))], axis=-1)
 
 
-def out_of_fold_inputs(base: dict[int, np.ndarray], masks: dict[int, np.ndarray], ids: list[int], n_folds: int,
-                       seed: int) -> dict[int, np.ndarray]:
+def out_of_fold_inputs(
+    base: dict[int, np.ndarray], masks: dict[int, np.ndarray], ids: list[int], n_folds: int, seed: int
+) -> dict[int, np.ndarray]:
     """Stage-2 inputs of every image of ``ids``, its context from a stage 1 that did not see it."""
     out = {}
     for k in range(n_folds):
@@ -186,23 +191,35 @@ def out_of_fold_inputs(base: dict[int, np.ndarray], masks: dict[int, np.ndarray]
     return out
 
 
-def fit_auto_context(bank: dict[int, np.ndarray], masks: dict[int, np.ndarray], ids: list[int], n_folds: int,
-                     seed: int) -> tuple[PixelMLP, PixelMLP]:
+def fit_auto_context(
+    bank: dict[int, np.ndarray], masks: dict[int, np.ndarray], ids: list[int], n_folds: int, seed: int
+) -> tuple[PixelMLP, PixelMLP]:
     """Both MLPs on ``ids``: stage 2 on out-of-fold stage-1 context, stage 1 on all of ``ids``."""
     stage2 = fit_stage(out_of_fold_inputs(bank, masks, ids, n_folds, seed), masks, ids, seed + 100)
     return fit_stage(bank, masks, ids, seed + 200), stage2
 
 
 class TorchCrackNet(nn.Module):
-    """The network of :class:`workers.algorithms.cracks.CrackNet`, layer for layer, in PyTorch."""
+    """The network of :class:`workers.algorithms.cracks.detection.CrackNet`, layer for layer, in PyTorch."""
 
     def __init__(self, n_features: int, widths: tuple[int, int, int]) -> None:
         super().__init__()
         a, b, c = widths
-        shapes = {"enc0": (n_features, a), "enc1": (a, a), "half0": (a, b), "half1": (b, b), "quarter0": (b, b),
-                  "quarter1": (b, b), "quarter2": (b, b), "up_half": (2 * b, b), "up_full": (a + b, c), "head": (c, 1)}
-        self.convs = nn.ModuleDict({name: nn.Conv2d(*shapes[name], k, padding=d * (k // 2), dilation=d)
-                                    for name, k, d in NET_LAYERS})
+        shapes = {
+            "enc0": (n_features, a),
+            "enc1": (a, a),
+            "half0": (a, b),
+            "half1": (b, b),
+            "quarter0": (b, b),
+            "quarter1": (b, b),
+            "quarter2": (b, b),
+            "up_half": (2 * b, b),
+            "up_full": (a + b, c),
+            "head": (c, 1),
+        }
+        self.convs = nn.ModuleDict(
+            {name: nn.Conv2d(*shapes[name], k, padding=d * (k // 2), dilation=d) for name, k, d in NET_LAYERS}
+        )
         self.register_buffer("mean", torch.zeros(n_features, 1, 1))
         self.register_buffer("scale", torch.ones(n_features, 1, 1))
 
@@ -223,11 +240,19 @@ class TorchCrackNet(nn.Module):
         return c["head"](full)[:, 0]
 
     def to_numpy(self) -> CrackNet:
-        """The same network for :mod:`workers.algorithms.cracks` (weights as (k, k, Cin, Cout))."""
-        layers = {name: (conv.weight.detach().cpu().numpy().transpose(2, 3, 1, 0).astype(np.float32),
-                         conv.bias.detach().cpu().numpy().astype(np.float32)) for name, conv in self.convs.items()}
-        return CrackNet(self.mean.cpu().numpy().ravel().astype(np.float32),
-                        self.scale.cpu().numpy().ravel().astype(np.float32), layers)
+        """The same network for :mod:`workers.algorithms.cracks.detection` (weights as (k, k, Cin, Cout))."""
+        layers = {
+            name: (
+                conv.weight.detach().cpu().numpy().transpose(2, 3, 1, 0).astype(np.float32),
+                conv.bias.detach().cpu().numpy().astype(np.float32),
+            )
+            for name, conv in self.convs.items()
+        }
+        return CrackNet(
+            self.mean.cpu().numpy().ravel().astype(np.float32),
+            self.scale.cpu().numpy().ravel().astype(np.float32),
+            layers,
+        )
 
 
 def load_pair(data: Path, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -254,9 +279,14 @@ def dihedral(t: torch.Tensor, k: int) -> torch.Tensor:
     return torch.flip(t, dims=(-1,)) if k >= 4 else t
 
 
-def sample_batch(features: list[torch.Tensor], targets: list[torch.Tensor], weights: list[torch.Tensor],
-                 crack_pixels: list[np.ndarray], cfg: TrainConfig, rng: np.random.Generator
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def sample_batch(
+    features: list[torch.Tensor],
+    targets: list[torch.Tensor],
+    weights: list[torch.Tensor],
+    crack_pixels: list[np.ndarray],
+    cfg: TrainConfig,
+    rng: np.random.Generator,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``cfg.batch`` random crops: features (B, F, S, S), targets (B, S, S), weights (B, S, S)."""
     xs, ys, ws = [], [], []
     s = cfg.crop
@@ -285,8 +315,14 @@ def feature_statistics(features: list[np.ndarray]) -> tuple[np.ndarray, np.ndarr
     return mean.astype(np.float32), (np.sqrt(np.asarray(var)) + 1e-6).astype(np.float32)
 
 
-def train_net(features: dict[Key, np.ndarray], masks: dict[Key, np.ndarray], keys: list[Key], cfg: TrainConfig,
-              seed: int, device: str = "cpu") -> TorchCrackNet:
+def train_net(
+    features: dict[Key, np.ndarray],
+    masks: dict[Key, np.ndarray],
+    keys: list[Key],
+    cfg: TrainConfig,
+    seed: int,
+    device: str = "cpu",
+) -> TorchCrackNet:
     """A network fitted on the images ``keys`` (features (H, W, F) and masks (H, W) bool per image)."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -311,8 +347,15 @@ def train_net(features: dict[Key, np.ndarray], masks: dict[Key, np.ndarray], key
     return net.cpu().eval()
 
 
-def fit_model(features: dict[Key, np.ndarray], masks: dict[Key, np.ndarray], ids: list[int], n_folds: int,
-              cfg: TrainConfig, seed: int, thresholds: Thresholds = (0.5, 0.5, 0.0)) -> CrackModel:
+def fit_model(
+    features: dict[Key, np.ndarray],
+    masks: dict[Key, np.ndarray],
+    ids: list[int],
+    n_folds: int,
+    cfg: TrainConfig,
+    seed: int,
+    thresholds: Thresholds = (0.5, 0.5, 0.0),
+) -> CrackModel:
     """Both classifiers on the images ``ids``: the MLPs on their filter bank (stage 2 on ``n_folds``-fold
     out-of-fold context), the network on their features and those of their augmented copies."""
     bank = {i: features[i][..., :N_BANK] for i in ids}
@@ -330,8 +373,9 @@ def folds(ids: list[int]) -> list[list[int]]:
     return [ordered[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def cross_validated_maps(features: dict[Key, np.ndarray], masks: dict[Key, np.ndarray], ids: list[int],
-                         cfg: TrainConfig, seed: int) -> dict[int, np.ndarray]:
+def cross_validated_maps(
+    features: dict[Key, np.ndarray], masks: dict[Key, np.ndarray], ids: list[int], cfg: TrainConfig, seed: int
+) -> dict[int, np.ndarray]:
     """Every image's probability map from a model fitted on the other folds of :func:`folds`."""
     out = {}
     for k, held in enumerate(folds(ids)):
@@ -344,14 +388,16 @@ def post_process(probability: np.ndarray, low: float, high: float, min_length_px
     return remove_short_components(hysteresis_threshold(probability, low, high), min_length_px)
 
 
-def grid_counts(probabilities: dict[int, np.ndarray], masks: dict[int, np.ndarray]
-                ) -> dict[Thresholds, dict[int, ToleranceCounts]]:
+def grid_counts(
+    probabilities: dict[int, np.ndarray], masks: dict[int, np.ndarray]
+) -> dict[Thresholds, dict[int, ToleranceCounts]]:
     """Per (low, high, min_length_px) of the grid, each image's 2-px counts."""
     out: dict[Thresholds, dict[int, ToleranceCounts]] = {}
     for low, high, min_length in product(LOW_GRID, HIGH_GRID, MIN_LENGTH_GRID):
         if low <= high:
-            out[(low, high, min_length)] = {i: tolerance_counts(post_process(p, low, high, min_length), masks[i])
-                                            for i, p in probabilities.items()}
+            out[(low, high, min_length)] = {
+                i: tolerance_counts(post_process(p, low, high, min_length), masks[i]) for i, p in probabilities.items()
+            }
     return out
 
 
@@ -359,8 +405,9 @@ def pooled(counts: dict[int, ToleranceCounts], ids: list[int]) -> ToleranceCount
     return sum((counts[i] for i in ids), ToleranceCounts(0, 0, 0, 0))
 
 
-def choose_thresholds(grid: dict[Thresholds, dict[int, ToleranceCounts]], ids: list[int]
-                      ) -> tuple[Thresholds, ToleranceCounts]:
+def choose_thresholds(
+    grid: dict[Thresholds, dict[int, ToleranceCounts]], ids: list[int]
+) -> tuple[Thresholds, ToleranceCounts]:
     """The grid point with the best pooled F1 over ``ids``, and those counts."""
     best = max(grid, key=lambda t: pooled(grid[t], ids).f1)
     return best, pooled(grid[best], ids)

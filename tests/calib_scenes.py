@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from workers.algorithms.calibration import board_points
-from workers.algorithms.camera import Camera, rotation_from_vector, world_to_camera
+from workers.algorithms.geometry import Camera, rotation_from_vector, world_to_camera
 
 # A wide-angle lens with strong barrel distortion: 1.4 px of tangential and ~140 px of radial
 # displacement at the frame corners.
@@ -52,8 +52,14 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return rotation_from_vector(axis / max(np.linalg.norm(axis), 1e-300) * angle)
 
 
-def random_poses(camera: Camera, aims_px: np.ndarray, rng: np.random.Generator, board_size: tuple[float, float],
-                 distance: tuple[float, float], max_tilt_deg: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+def random_poses(
+    camera: Camera,
+    aims_px: np.ndarray,
+    rng: np.random.Generator,
+    board_size: tuple[float, float],
+    distance: tuple[float, float],
+    max_tilt_deg: float = 50.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Camera poses (R (n, 3, 3), C (n, 3)) looking at a board in the plane Z = 0 from Z < 0.
 
     View k sits at a random ``distance`` from a random point of the board, 10 .. ``max_tilt_deg`` off the
@@ -95,8 +101,14 @@ def visible(camera: Camera, points_cam: np.ndarray, margin: float = 2.0) -> np.n
     return inside & (points_cam[:, 2] > 0) & (radius <= field)
 
 
-def board_scene(camera: Camera = LENS, n_views: int = 15, noise_px: float = 0.2, seed: int = 0,
-                pattern: tuple[int, int] = (17, 12), square: float = 40.0) -> BoardScene:
+def board_scene(
+    camera: Camera = LENS,
+    n_views: int = 15,
+    noise_px: float = 0.2,
+    seed: int = 0,
+    pattern: tuple[int, int] = (17, 12),
+    square: float = 40.0,
+) -> BoardScene:
     """A large board (17 x 12 corners of 40 mm) in ``n_views`` poses that cover the whole frame between them."""
     rng = np.random.default_rng(seed)
     obj = board_points(pattern, square)
@@ -132,8 +144,9 @@ def stereo_scene(n_views: int = 10, noise_px: float = 0.2, seed: int = 1) -> Ste
     wholly seen by both cameras in every view (as a stereo chessboard detector requires)."""
     rng = np.random.default_rng(seed)
     left = LENS
-    right = Camera(1280, 960, fx=980.0, fy=982.0, cx=630.0, cy=490.0, k1=0.25, k2=0.05, t1=-3e-4,
-                   convention="restore_ideal")
+    right = Camera(
+        1280, 960, fx=980.0, fy=982.0, cx=630.0, cy=490.0, k1=0.25, k2=0.05, t1=-3e-4, convention="restore_ideal"
+    )
     obj = board_points((11, 8), 40.0)
     views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     while len(views) < n_views:
@@ -147,8 +160,9 @@ def stereo_scene(n_views: int = 10, noise_px: float = 0.2, seed: int = 1) -> Ste
     return StereoScene(left, right, RIG_R, RIG_T, views)
 
 
-def straight_lines(camera: Camera, n_lines: int = 24, n_points: int = 40, noise_px: float = 0.1,
-                   seed: int = 2) -> list[np.ndarray]:
+def straight_lines(
+    camera: Camera, n_lines: int = 24, n_points: int = 40, noise_px: float = 0.1, seed: int = 2
+) -> list[np.ndarray]:
     """Images of straight 3-D lines (random directions across the whole field) through ``camera``."""
     rng = np.random.default_rng(seed)
     lines: list[np.ndarray] = []
@@ -169,8 +183,9 @@ def mapping_error_px(estimate: Camera, truth: Camera, grid: int = 25) -> float:
     return float(np.linalg.norm(estimate.normalised_to_pixel(truth.pixel_to_normalised(uv)) - uv, axis=1).max())
 
 
-def render_chessboard(pattern: tuple[int, int], square_px: int, H: np.ndarray,
-                      size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def render_chessboard(
+    pattern: tuple[int, int], square_px: int, H: np.ndarray, size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """A chessboard image warped by the homography ``H`` (board canvas px -> image px), and the true
     image positions (N, 2) of its inner corners in OpenCV's order.
 
@@ -184,7 +199,7 @@ def render_chessboard(pattern: tuple[int, int], square_px: int, H: np.ndarray,
     blurred = cv2.GaussianBlur(canvas, (0, 0), 1.0)  # a lens's blur, and no aliasing when H shrinks the board
     image = cv2.warpPerspective(blurred, H, size, flags=cv2.INTER_LINEAR, borderValue=255.0)
     image = np.clip(np.rint(image), 0, 255).astype(np.uint8)
-    j, i = np.mgrid[1: rows + 1, 1: cols + 1]
+    j, i = np.mgrid[1 : rows + 1, 1 : cols + 1]
     corners = np.stack([i.ravel(), j.ravel()], axis=1) * square_px + square_px - 0.5
     mapped = np.c_[corners, np.ones(len(corners))] @ H.T
     return image, mapped[:, :2] / mapped[:, 2:]

@@ -47,7 +47,7 @@ class RecordingQueue:
 @pytest.fixture(params=["sqlite", "postgresql"])
 def api_settings(request: pytest.FixtureRequest, tmp_path: Path):
     """Settings over a temporary data dir; every API test runs on SQLite and on a real PostgreSQL."""
-    from api.settings import Settings
+    from core.settings import Settings
 
     url = fresh_database(request.getfixturevalue("postgres_base_url")) if request.param == "postgresql" else ""
     return Settings(data_dir=tmp_path / "data", database_url=url, redis_url="redis://127.0.0.1:1/0")
@@ -56,12 +56,14 @@ def api_settings(request: pytest.FixtureRequest, tmp_path: Path):
 @pytest.fixture(scope="session")
 def postgres_base_url() -> Iterator[str]:
     """A throw-away PostgreSQL cluster (Debian's server binaries) on a free port, trust auth."""
-    from api.services import stop, wait_for_port
+    from api.embedded_stack import stop, wait_for_port
 
     initdb = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
     if not initdb:
-        pytest.skip("PostgreSQL server binaries are absent (Debian package postgresql; "
-                    "scripts/setup.sh --test installs it when run as root)")
+        pytest.skip(
+            "PostgreSQL server binaries are absent (Debian package postgresql; "
+            "scripts/setup.sh --test installs it when run as root)"
+        )
     bindir = initdb[-1].parent
     root = Path(tempfile.mkdtemp(prefix="fotoskhema-pg-"))
     as_user: list[str] = []
@@ -69,11 +71,29 @@ def postgres_base_url() -> Iterator[str]:
         shutil.chown(root, "postgres")
         as_user = ["runuser", "-u", "postgres", "--"]
     data, port = root / "data", free_port()
-    subprocess.run([*as_user, str(bindir / "initdb"), "-D", str(data), "-U", "postgres", "--auth=trust",
-                    "-E", "UTF8"], check=True, stdout=subprocess.DEVNULL)
-    server = subprocess.Popen([*as_user, str(bindir / "postgres"), "-D", str(data), "-p", str(port), "-k", str(root),
-                               "-c", "listen_addresses=127.0.0.1", "-c", "fsync=off"],
-                              stdout=subprocess.DEVNULL, stderr=(root / "server.log").open("wb"))
+    subprocess.run(
+        [*as_user, str(bindir / "initdb"), "-D", str(data), "-U", "postgres", "--auth=trust", "-E", "UTF8"],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+    server = subprocess.Popen(
+        [
+            *as_user,
+            str(bindir / "postgres"),
+            "-D",
+            str(data),
+            "-p",
+            str(port),
+            "-k",
+            str(root),
+            "-c",
+            "listen_addresses=127.0.0.1",
+            "-c",
+            "fsync=off",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=(root / "server.log").open("wb"),
+    )
     try:
         wait_for_port("127.0.0.1", port, 30, server)
         yield f"postgresql+psycopg2://postgres@127.0.0.1:{port}/"
@@ -135,7 +155,7 @@ class LiveService:
 @pytest.fixture(scope="session")
 def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveService]:
     """Redis + Celery worker + uvicorn, as separate processes, on free local ports."""
-    from api.services import find_redis_server, start_redis, stop, wait_for_port
+    from api.embedded_stack import find_redis_server, start_redis, stop, wait_for_port
 
     try:
         find_redis_server()
@@ -145,18 +165,56 @@ def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServi
     data_dir, logs = root / "data", root / "logs"
     logs.mkdir()
     redis_url = f"redis://127.0.0.1:{free_port()}/0"
-    env = {**os.environ, "FOTOSKHEMA_DATA_DIR": str(data_dir), "FOTOSKHEMA_REDIS_URL": redis_url,
-           "FOTOSKHEMA_DATABASE_URL": "", "FOTOSKHEMA_CELERY_QUEUE": "cpu", "PYTHONUNBUFFERED": "1"}
+    env = {
+        **os.environ,
+        "FOTOSKHEMA_DATA_DIR": str(data_dir),
+        "FOTOSKHEMA_REDIS_URL": redis_url,
+        "FOTOSKHEMA_DATABASE_URL": "",
+        "FOTOSKHEMA_CELERY_QUEUE": "cpu",
+        "PYTHONUNBUFFERED": "1",
+    }
     env.pop("DATABASE_URL", None)
     env.pop("REDIS_URL", None)
     port = free_port()
     procs: list[subprocess.Popen[bytes] | None] = [start_redis(redis_url, root / "redis")]
     try:
-        procs.append(_spawn([sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "-Q", "cpu,gpu",
-                             "--concurrency", "1", "--loglevel", "INFO", "--without-gossip", "--without-mingle"],
-                            env, logs / "worker.log"))
-        server = _spawn([sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--host", "127.0.0.1",
-                         "--port", str(port)], env, logs / "api.log")
+        procs.append(
+            _spawn(
+                [
+                    sys.executable,
+                    "-m",
+                    "celery",
+                    "-A",
+                    "workers.celery_app",
+                    "worker",
+                    "-Q",
+                    "cpu,gpu",
+                    "--concurrency",
+                    "1",
+                    "--loglevel",
+                    "INFO",
+                    "--without-gossip",
+                    "--without-mingle",
+                ],
+                env,
+                logs / "worker.log",
+            )
+        )
+        server = _spawn(
+            [
+                sys.executable,
+                "-m",
+                "uvicorn",
+                "api.main:create_app",
+                "--factory",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+            ],
+            env,
+            logs / "api.log",
+        )
         procs.append(server)
         wait_for_port("127.0.0.1", port, 60, server)
         yield LiveService(f"http://127.0.0.1:{port}", data_dir, redis_url, logs)

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from workers.algorithms.camera import Camera
+from workers.algorithms.geometry import Camera
 
 TEXTURE_MM_PER_PX = 0.1  # resolution of the coating texture and of the crack distance field
 MARKS_MM = ((50.0, 40.0), (150.0, 110.0), (60.0, 115.0))  # control marks besides the corners, (X, Y) mm
@@ -59,20 +59,32 @@ class CrackSurveyScene:
 
     def options(self, mm_per_px: float, views: tuple[int, ...] | None = None) -> dict:
         """The crack-survey options a user would send for these photos (only ``views``, by index, if given)."""
-        stages = [{"label": f"stage {s + 1}", "load": 10.0 * (s + 1),
-                   "photos": [{"image": p.path.name, "control_points": p.control_points}
-                              for p in self.photos if p.stage == s and (views is None or p.view in views)]}
-                  for s in range(len(self.stages))]
-        specimen = ({"mesh": self.mesh_path.name} if self.mesh_path is not None
-                    else {"width_mm": self.width_mm, "height_mm": self.height_mm})
+        stages = [
+            {
+                "label": f"stage {s + 1}",
+                "load": 10.0 * (s + 1),
+                "photos": [
+                    {"image": p.path.name, "control_points": p.control_points}
+                    for p in self.photos
+                    if p.stage == s and (views is None or p.view in views)
+                ],
+            }
+            for s in range(len(self.stages))
+        ]
+        specimen = (
+            {"mesh": self.mesh_path.name}
+            if self.mesh_path is not None
+            else {"width_mm": self.width_mm, "height_mm": self.height_mm}
+        )
         return {"camera": self.camera.to_json(), "specimen": specimen, "stages": stages, "mm_per_px": mm_per_px}
 
     def paths(self, views: tuple[int, ...] | None = None) -> list[Path]:
         return [p.path for p in self.photos if views is None or p.view in views]
 
 
-def wandering_line(rng: np.random.Generator, start: np.ndarray, angle: float, length_mm: float,
-                   step_mm: float = 1.0) -> np.ndarray:
+def wandering_line(
+    rng: np.random.Generator, start: np.ndarray, angle: float, length_mm: float, step_mm: float = 1.0
+) -> np.ndarray:
     """(N, 2) centreline of a gently wandering crack of ``length_mm`` from ``start``."""
     points = [start]
     for _ in range(int(round(length_mm / step_mm))):
@@ -81,16 +93,25 @@ def wandering_line(rng: np.random.Generator, start: np.ndarray, angle: float, le
     return np.array(points)
 
 
-def _place_cracks(rng: np.random.Generator, n: int, width_mm: float, height_mm: float, taken: list[np.ndarray],
-                  status: str, spacing_mm: float = 12.0, edge_mm: float = 8.0) -> list[TrueCrack]:
+def _place_cracks(
+    rng: np.random.Generator,
+    n: int,
+    width_mm: float,
+    height_mm: float,
+    taken: list[np.ndarray],
+    status: str,
+    spacing_mm: float = 12.0,
+    edge_mm: float = 8.0,
+) -> list[TrueCrack]:
     cracks: list[TrueCrack] = []
     for _ in range(5000):
         if len(cracks) == n:
             return cracks
         start = rng.uniform([edge_mm, edge_mm], [width_mm - edge_mm, height_mm - edge_mm])
         line = wandering_line(rng, start, rng.uniform(0, 2 * np.pi), rng.uniform(50, 80))
-        inside = (line.min(axis=0) >= edge_mm).all() and (line.max(axis=0) <= [width_mm - edge_mm,
-                                                                               height_mm - edge_mm]).all()
+        inside = (line.min(axis=0) >= edge_mm).all() and (
+            line.max(axis=0) <= [width_mm - edge_mm, height_mm - edge_mm]
+        ).all()
         far = all(np.min(np.linalg.norm(line[:, None] - other[None], axis=2)) > spacing_mm for other in taken)
         if inside and far:
             taken.append(line)
@@ -119,16 +140,18 @@ def make_stages(seed: int, width_mm: float, height_mm: float) -> list[list[TrueC
     return [first, [grown, *unchanged, *_place_cracks(rng, 2, width_mm, height_mm, taken, "new")]]
 
 
-def _grow_one(rng: np.random.Generator, cracks: list[TrueCrack], taken: list[np.ndarray], width_mm: float,
-              height_mm: float) -> tuple[int, TrueCrack] | None:
+def _grow_one(
+    rng: np.random.Generator, cracks: list[TrueCrack], taken: list[np.ndarray], width_mm: float, height_mm: float
+) -> tuple[int, TrueCrack] | None:
     """One crack of ``cracks`` grown by 15 mm at its end, staying on the plate and away from the others."""
     for index, crack in enumerate(cracks):
         others = [t for k, t in enumerate(taken) if k != index]
         for _ in range(40):
             grown = _grow(rng, crack, 15.0)
-            extension = grown.line_mm[len(crack.line_mm):]
-            inside = (extension.min(axis=0) >= 8).all() and (extension.max(axis=0)
-                                                              <= [width_mm - 8, height_mm - 8]).all()
+            extension = grown.line_mm[len(crack.line_mm) :]
+            inside = (extension.min(axis=0) >= 8).all() and (
+                extension.max(axis=0) <= [width_mm - 8, height_mm - 8]
+            ).all()
             if inside and all(np.min(np.linalg.norm(extension[:, None] - o[None], axis=2)) > 12 for o in others):
                 return index, grown
     return None
@@ -142,8 +165,9 @@ def look_at(C: np.ndarray, target: np.ndarray, right: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
-def oblique_pose(camera: Camera, width_mm: float, height_mm: float, elevation_deg: float, azimuth_deg: float,
-                 fill: float = 0.85) -> tuple[np.ndarray, np.ndarray]:
+def oblique_pose(
+    camera: Camera, width_mm: float, height_mm: float, elevation_deg: float, azimuth_deg: float, fill: float = 0.85
+) -> tuple[np.ndarray, np.ndarray]:
     """A camera seeing the whole plate at ``elevation_deg`` above its plane, from the direction
     ``azimuth_deg`` (0: from +Y, the bottom of the plate), the plate filling ``fill`` of the frame."""
     centre = np.array([width_mm / 2, height_mm / 2, 0.0])
@@ -233,8 +257,13 @@ class CurvedPanel:
 
     def to_model(self, sy: np.ndarray) -> np.ndarray:
         phi = (np.asarray(sy)[:, 0] - self.width_mm / 2) / self.radius_mm
-        return np.column_stack([self.axis[0] + self.radius_mm * np.sin(phi), np.asarray(sy)[:, 1],
-                                self.axis[1] - self.radius_mm * np.cos(phi)])
+        return np.column_stack(
+            [
+                self.axis[0] + self.radius_mm * np.sin(phi),
+                np.asarray(sy)[:, 1],
+                self.axis[1] - self.radius_mm * np.cos(phi),
+            ]
+        )
 
     def trace(self, C: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """As :meth:`Plate.trace`: the nearer intersection with the cylinder, on the panel."""
@@ -257,13 +286,21 @@ class CurvedPanel:
         k = np.arange((n_y + 1) * (n_arc + 1)).reshape(n_y + 1, n_arc + 1)
         a, b, c, d = k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel()
         faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
-        lines = [f"v {x:.6f} {yy:.6f} {z:.6f}" for x, yy, z in vertices] + [f"f {i + 1} {j + 1} {m + 1}"
-                                                                             for i, j, m in faces]
+        lines = [f"v {x:.6f} {yy:.6f} {z:.6f}" for x, yy, z in vertices] + [
+            f"f {i + 1} {j + 1} {m + 1}" for i, j, m in faces
+        ]
         path.write_text("# curved panel, mm\n" + "\n".join(lines) + "\n")
 
 
-def render_photo(camera: Camera, R: np.ndarray, C: np.ndarray, coating: np.ndarray, field_mm: np.ndarray,
-                 specimen: Plate | CurvedPanel, rng: np.random.Generator) -> np.ndarray:
+def render_photo(
+    camera: Camera,
+    R: np.ndarray,
+    C: np.ndarray,
+    coating: np.ndarray,
+    field_mm: np.ndarray,
+    specimen: Plate | CurvedPanel,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """(H, W) uint8: the specimen (coating under a light ramp and a directional light, cracks) on a dark
     background, with noise."""
     u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
@@ -285,9 +322,15 @@ def render_photo(camera: Camera, R: np.ndarray, C: np.ndarray, coating: np.ndarr
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def make_crack_survey(out_dir: Path, views: list[tuple[float, float]], seed: int = 0, width_mm: float = 200.0,
-                      height_mm: float = 150.0, frame_size: tuple[int, int] = (900, 700),
-                      panel_radius_mm: float | None = None) -> CrackSurveyScene:
+def make_crack_survey(
+    out_dir: Path,
+    views: list[tuple[float, float]],
+    seed: int = 0,
+    width_mm: float = 200.0,
+    height_mm: float = 150.0,
+    frame_size: tuple[int, int] = (900, 700),
+    panel_radius_mm: float | None = None,
+) -> CrackSurveyScene:
     """Render two load stages, each photographed from ``views`` (elevation, azimuth) degrees, to PNGs.
 
     The specimen is a plate, or with ``panel_radius_mm`` a :class:`CurvedPanel` of arc width ``width_mm``
@@ -298,8 +341,9 @@ def make_crack_survey(out_dir: Path, views: list[tuple[float, float]], seed: int
     rng = np.random.default_rng(seed)
     w, h = frame_size
     camera = Camera(w, h, 1.05 * w, 1.05 * w, w / 2 + 6.0, h / 2 - 4.0, k1=-0.09, k2=0.04, t1=3e-4, t2=-2e-4)
-    specimen = Plate(width_mm, height_mm) if panel_radius_mm is None else CurvedPanel(width_mm, height_mm,
-                                                                                         panel_radius_mm)
+    specimen = (
+        Plate(width_mm, height_mm) if panel_radius_mm is None else CurvedPanel(width_mm, height_mm, panel_radius_mm)
+    )
     scene = CrackSurveyScene(width_mm, height_mm, camera, make_stages(seed, width_mm, height_mm), specimen=specimen)
     shape = (int(round(height_mm / TEXTURE_MM_PER_PX)) + 1, int(round(width_mm / TEXTURE_MM_PER_PX)) + 1)
     coating = _coating(rng, shape)
@@ -312,8 +356,7 @@ def make_crack_survey(out_dir: Path, views: list[tuple[float, float]], seed: int
     for s, cracks in enumerate(scene.stages):
         field_mm = crack_field(cracks, shape)
         for k, (elevation, azimuth) in enumerate(views):
-            R, C = oblique_pose(camera, extent, height_mm, elevation + rng.uniform(-1, 1),
-                                azimuth + rng.uniform(-2, 2))
+            R, C = oblique_pose(camera, extent, height_mm, elevation + rng.uniform(-1, 1), azimuth + rng.uniform(-2, 2))
             C = C + rng.uniform(-3, 3, 3)
             image = render_photo(camera, R, C, coating, field_mm, specimen, rng)
             path = out_dir / f"stage{s + 1}_view{k + 1}_{int(elevation)}deg.png"

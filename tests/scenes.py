@@ -121,9 +121,7 @@ def make_texture(height: int, width: int, seed: int = 0) -> np.ndarray:
     return np.clip(img + grain, 0, 255).astype(np.uint8)
 
 
-def _band_limited_noise(
-    rng: np.random.Generator, height: int, width: int, cell: int, channels: int
-) -> np.ndarray:
+def _band_limited_noise(rng: np.random.Generator, height: int, width: int, cell: int, channels: int) -> np.ndarray:
     """``(height, width, channels) float32`` noise with unit-ish amplitude and features ``cell`` px wide."""
     gh, gw = height // cell + 4, width // cell + 4
     coarse = rng.standard_normal((gh, gw, channels)).astype(np.float32)
@@ -325,9 +323,7 @@ def _texture_size(local: list[np.ndarray], frame_size: tuple[int, int]) -> tuple
     return int(2 * half[0] + 1), int(2 * half[1] + 1)
 
 
-def _georeference(
-    origin_latlon: tuple[float, float], gsd_m: float, width: int, height: int
-) -> tuple[int, np.ndarray]:
+def _georeference(origin_latlon: tuple[float, float], gsd_m: float, width: int, height: int) -> tuple[int, np.ndarray]:
     """UTM EPSG code and ``(3, 3)`` texture px -> UTM affine putting the texture centre at the origin."""
     lat, lon = origin_latlon
     zone = int((lon + 180) // 6) % 60 + 1

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.algorithms.camera import Camera
+from workers.algorithms.geometry import Camera
 
 TRUE_CAMERA = Camera(width=1200, height=900, fx=1000.0, fy=1000.0, cx=603.0, cy=447.5, k1=-0.08, k2=0.02)
 
@@ -91,8 +91,14 @@ def attitude_of(R: np.ndarray) -> tuple[float, float, float]:
     return float(np.degrees(np.arctan2(heading[0], heading[1]))), float(pitch), 0.0
 
 
-def make_sfm_scene(n_ring: int = 16, n_nadir: int = 8, n_points: int = 2500, noise_px: float = 0.5,
-                   outlier_fraction: float = 0.1, seed: int = 0) -> SfmScene:
+def make_sfm_scene(
+    n_ring: int = 16,
+    n_nadir: int = 8,
+    n_points: int = 2500,
+    noise_px: float = 0.5,
+    outlier_fraction: float = 0.1,
+    seed: int = 0,
+) -> SfmScene:
     """A seeded scene; see the module docstring."""
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-45.0, 45.0, (n_points, 2))
@@ -128,8 +134,9 @@ def _camera_rig(n_ring: int, n_nadir: int, rng: np.random.Generator) -> tuple[np
     return np.array(rotations), np.array(centres)
 
 
-def _matches(rotations: np.ndarray, feature_point: list[np.ndarray], outlier_fraction: float,
-             rng: np.random.Generator) -> tuple[dict, dict]:
+def _matches(
+    rotations: np.ndarray, feature_point: list[np.ndarray], outlier_fraction: float, rng: np.random.Generator
+) -> tuple[dict, dict]:
     matches, wrong = {}, {}
     n = len(rotations)
     for i in range(n):

@@ -21,7 +21,7 @@ from PIL import Image
 from pyproj import Transformer
 
 from tests.scenes import FIRST_SHOT, SHOT_INTERVAL, _exif_bytes, make_texture
-from workers.algorithms.camera import Camera, rotation_from_vector
+from workers.algorithms.geometry import Camera, rotation_from_vector
 
 
 @dataclass(frozen=True)
@@ -46,8 +46,11 @@ class TerrainFlight:
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Terrain height (m) at world x, y: two smooth hills and a gentle slope."""
-        return self.relief_m * (np.exp(-((x - 6) ** 2 + (y - 4) ** 2) / 150.0)
-                                - 0.6 * np.exp(-((x + 10) ** 2 + (y + 6) ** 2) / 90.0) + 0.01 * x)
+        return self.relief_m * (
+            np.exp(-((x - 6) ** 2 + (y - 4) ** 2) / 150.0)
+            - 0.6 * np.exp(-((x + 10) ** 2 + (y + 6) ** 2) / 90.0)
+            + 0.01 * x
+        )
 
     def texture_px(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Texture pixel (column, row) of world x, y; rows grow southwards."""
@@ -64,10 +67,20 @@ class TerrainFlight:
         return np.column_stack([xy, z])
 
 
-def make_terrain_flight(out_dir: Path, rows: int = 3, per_row: int = 5, frame_size: tuple[int, int] = (800, 600),
-                        altitude_m: float = 50.0, overlap: float = 0.7, relief_m: float = 6.0,
-                        tilt_deg: float = 4.0, k1: float = -0.06, k2: float = 0.02, seed: int = 0,
-                        origin_latlon: tuple[float, float] = (52.52, 13.40)) -> TerrainFlight:
+def make_terrain_flight(
+    out_dir: Path,
+    rows: int = 3,
+    per_row: int = 5,
+    frame_size: tuple[int, int] = (800, 600),
+    altitude_m: float = 50.0,
+    overlap: float = 0.7,
+    relief_m: float = 6.0,
+    tilt_deg: float = 4.0,
+    k1: float = -0.06,
+    k2: float = 0.02,
+    seed: int = 0,
+    origin_latlon: tuple[float, float] = (52.52, 13.40),
+) -> TerrainFlight:
     """Render a serpentine grid flight (``rows`` lines of ``per_row`` frames) to JPEGs with EXIF GPS.
 
     The camera looks down, turned by up to 8 degrees of yaw and tilted by up to ``tilt_deg``; GPS in
@@ -94,8 +107,17 @@ def make_terrain_flight(out_dir: Path, rows: int = 3, per_row: int = 5, frame_si
     lat, lon = origin_latlon
     epsg = (32600 if lat >= 0 else 32700) + int((lon + 180) // 6) % 60 + 1
     east, north = Transformer.from_crs(4326, epsg, always_xy=True).transform(lon, lat)
-    flight = TerrainFlight([Path(out_dir) / f"terrain_{i:03d}.jpg" for i in range(len(centres))], camera,
-                           rotations, centres, tex, gsd, relief_m, epsg, (float(east), float(north)))
+    flight = TerrainFlight(
+        [Path(out_dir) / f"terrain_{i:03d}.jpg" for i in range(len(centres))],
+        camera,
+        rotations,
+        centres,
+        tex,
+        gsd,
+        relief_m,
+        epsg,
+        (float(east), float(north)),
+    )
     _render_frames(flight)
     return flight
 
@@ -117,12 +139,21 @@ def _render_frames(flight: TerrainFlight) -> None:
         ground = flight.ground_point(rays @ R, C)  # R.T @ ray for each row
         col, row = flight.texture_px(ground[:, 0], ground[:, 1])
         shape = (cam.height, cam.width)
-        image = cv2.remap(flight.texture, col.reshape(shape).astype(np.float32), row.reshape(shape).astype(np.float32),
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        image = cv2.remap(
+            flight.texture,
+            col.reshape(shape).astype(np.float32),
+            row.reshape(shape).astype(np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
         lon, lat = to_wgs84.transform(flight.origin_utm[0] + C[0], flight.origin_utm[1] + C[1])
         pitch_mm = 36.0 / cam.width  # a full-frame-equivalent sensor: EXIF's 35 mm focal is focal * 36 / width
-        exif = _exif_bytes(gps=(float(lat), float(lon), float(C[2])), focal_length_mm=round(cam.fx * pitch_mm),
-                           sensor_width_mm=36.0, pixels_per_cm=10.0 / pitch_mm,
-                           taken=FIRST_SHOT + i * SHOT_INTERVAL)
+        exif = _exif_bytes(
+            gps=(float(lat), float(lon), float(C[2])),
+            focal_length_mm=round(cam.fx * pitch_mm),
+            sensor_width_mm=36.0,
+            pixels_per_cm=10.0 / pitch_mm,
+            taken=FIRST_SHOT + i * SHOT_INTERVAL,
+        )
         flight.paths[i].parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(flight.paths[i], "JPEG", quality=93, exif=exif)

@@ -2,11 +2,13 @@
  * surveys of specimens under load.
  *
  * Vanilla JS with no build step. Routing is by hash (#/, #/flights/3, #/jobs/7, #/crack-surveys/new,
- * #/crack-surveys/9). Every view renders into #app and registers cleanups (event stream, map, timers,
- * upload) that run when the route changes; after each await a view checks `view.alive` so a slow answer
- * never draws over the next page. The pages are ES modules (flights.js, flight.js, job.js, result-map.js,
- * crack-survey.js, crack-survey-new.js with crack-survey-specimen.js, mesh.js and mesh-plan.js, over
- * lib.js); Leaflet is the classic script loaded before them and used as the global `L`.
+ * #/crack-surveys/9). Every view renders into #app with its own AbortController, whose `view.signal` is
+ * aborted when the route changes: that aborts the view's requests (`api(..., { signal })`) and runs the
+ * cleanups registered on it (event stream, map, timers, upload: `onAbort`); after each await a view checks
+ * `view.signal.aborted` so a slow answer never draws over the next page. The pages are ES modules
+ * (flights.js, flight.js, job.js, result-map.js, crack-survey.js, crack-survey-new.js with
+ * crack-survey-specimen.js, mesh.js and mesh-plan.js, over lib.js and kinds.js); Leaflet is the classic
+ * script loaded before them and used as the global `L`.
  */
 
 import { ApiError, h, messageOf } from "./lib.js";
@@ -26,23 +28,12 @@ const routes = [
   [/^#\/crack-surveys\/new$/, (view, root) => renderNewCrackSurvey(view, root)],
   [/^#\/crack-surveys\/(\d+)$/, (view, root, m) => renderCrackSurvey(view, root, Number(m[1]))],
 ];
-let currentView = null;
-
-function dispose(view) {
-  view.alive = false;
-  for (const cleanup of view.cleanups.splice(0).reverse()) {
-    try {
-      cleanup();
-    } catch (err) {
-      console.warn("cleanup failed", err);
-    }
-  }
-}
+let current = null; // the AbortController of the view shown
 
 function route() {
-  if (currentView) dispose(currentView);
-  const view = { alive: true, cleanups: [] };
-  currentView = view;
+  if (current) current.abort();
+  current = new AbortController();
+  const view = { signal: current.signal };
   const root = document.getElementById("app");
   root.replaceChildren();
   const hash = window.location.hash || "#/";
@@ -50,7 +41,7 @@ function route() {
     const match = hash.match(pattern);
     if (match) {
       Promise.resolve(render(view, root, match)).catch((err) => {
-        if (view.alive) renderProblem(root, err);
+        if (!view.signal.aborted) renderProblem(root, err); // an aborted view's failures (its aborted requests) are not news
       });
       return;
     }

@@ -8,28 +8,35 @@ import {
   dataTable,
   downloadList,
   factList,
+  filename,
+  formatCount,
   formatNumber,
+  formatParam,
   formatPlusMinus,
+  formatVector,
   h,
   humanize,
+  jobOutputs,
   list,
   messageOf,
 } from "./lib.js";
+import { JobKind } from "./kinds.js";
 
-export const CALIBRATION_KINDS = new Set(["calibration", "stereo_calibration"]);
+export const CALIBRATION_KINDS = new Set([JobKind.CALIBRATION, JobKind.STEREO_CALIBRATION]);
 const CAMERA_PARAMS = ["fx", "fy", "cx", "cy", "k1", "k2", "k3", "t1", "t2"];
 const PIXEL_PARAMS = new Set(["fx", "fy", "cx", "cy"]); // in pixels; the distortion terms are unitless
 
 /** Fill `card` with the calibration of `job` (which has succeeded). */
 export async function showCalibration(view, job, card) {
-  const stereo = job.kind === "stereo_calibration";
+  const stereo = job.kind === JobKind.STEREO_CALIBRATION;
   card.hidden = false;
   card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the calibration…"));
+  const { signal } = view;
   const [data, outputs] = await Promise.all([
-    api("GET", stereo ? `/api/stereo-rigs/${job.id}` : `/api/calibrations/${job.id}`),
-    api("GET", `/api/jobs/${job.id}/outputs`).then((d) => (d && d.outputs) || []),
+    api("GET", stereo ? `/api/stereo-rigs/${job.id}` : `/api/calibrations/${job.id}`, { signal }),
+    jobOutputs(job.id, { signal }),
   ]);
-  if (!view.alive) return;
+  if (signal.aborted) return;
   const result = data && data.result;
   if (!result) {
     card.replaceChildren(h("h2", { id: "result-heading" }, "Result"),
@@ -92,8 +99,7 @@ function paramTable(camera, std) {
 }
 
 function paramText(name, value) {
-  if (typeof value !== "number" || !Number.isFinite(value)) return "–";
-  return PIXEL_PARAMS.has(name) || Math.abs(value) >= 10 ? value.toFixed(2) : value.toPrecision(4);
+  return formatParam(value, PIXEL_PARAMS.has(name));
 }
 
 function sizeText(camera) {
@@ -106,7 +112,7 @@ function worstTable(points) {
     dataTable({
       caption: "Marks with the largest reprojection error",
       columns: [{ label: "Photo" }, { label: "Mark", num: true }, { label: "Error px", num: true }],
-      rows: list(points).map((p) => [filename(p.image), count(p.index), formatNumber(p.error_px, 3)]),
+      rows: list(points).map((p) => [filename(p.image), formatCount(p.index), formatNumber(p.error_px, 3)]),
       attrs: { "data-testid": "worst-points" },
       empty: "No marks in the result.",
       scroll: false,
@@ -120,7 +126,7 @@ function linesTable(lines) {
     dataTable({
       caption: "Residuals of each straight line",
       columns: [{ label: "Line", num: true }, { label: "Points", num: true }, { label: "RMS px", num: true }],
-      rows: list(lines).map((l) => [count(l.index), count(l.points), formatNumber(l.rms_px, 3)]),
+      rows: list(lines).map((l) => [formatCount(l.index), formatCount(l.points), formatNumber(l.rms_px, 3)]),
       attrs: { "data-testid": "plumb-lines" },
       empty: "No lines in the result.",
       scroll: false,
@@ -174,8 +180,8 @@ function pointTable(view) {
     caption: `Marks of ${view.image || "the photo"}`,
     columns: [{ label: "Mark", num: true }, { label: "Image x, y", num: true }, { label: "Board x, y, z", num: true },
       { label: "Residual dx, dy", num: true }, { label: "Error px", num: true }],
-    rows: list(view.points).map((p) => [count(p.index), vector(p.image_xy, 2), vector(p.board_xyz, 1),
-      vector(p.residual_px, 3), formatNumber(p.error_px, 3)]),
+    rows: list(view.points).map((p) => [formatCount(p.index), formatVector(p.image_xy, 2), formatVector(p.board_xyz, 1),
+      formatVector(p.residual_px, 3), formatNumber(p.error_px, 3)]),
     empty: "No marks for this photo.",
   });
 }
@@ -290,7 +296,7 @@ function measureForm(jobId) {
     submit.disabled = true;
     status.textContent = "Measuring…";
     try {
-      const answer = await api("POST", `/api/stereo-rigs/${jobId}/measure`, body);
+      const answer = await api("POST", `/api/stereo-rigs/${jobId}/measure`, { body });
       output.replaceChildren(...measureResult(answer || {}).filter(Boolean));
       status.textContent = `Measured ${list(answer && answer.points).length} point(s).`;
     } catch (err) {
@@ -312,7 +318,7 @@ function measureResult(answer) {
       columns: [{ label: "Point", num: true }, { label: "x, y, z mm", num: true }, { label: "Std. dev. mm", num: true },
         { label: "Ray gap mm", num: true }],
       rows: points.map((p, i) => ({ attrs: { "data-testid": "measured-point" },
-        cells: [String(i), vector(p.xyz, 2), formatNumber(p.sigma, 2), formatNumber(p.ray_gap, 3)] })),
+        cells: [String(i), formatVector(p.xyz, 2), formatNumber(p.sigma, 2), formatNumber(p.ray_gap, 3)] })),
       attrs: { "data-testid": "measured-points" },
       scroll: false,
     }),
@@ -335,14 +341,3 @@ function strings(value) {
   return Array.isArray(value) ? value.map(String) : [];
 }
 
-function count(n) {
-  return Number.isFinite(n) ? String(n) : "–";
-}
-
-function vector(v, digits) {
-  return Array.isArray(v) && v.length && v.every(Number.isFinite) ? v.map((x) => x.toFixed(digits)).join(", ") : "–";
-}
-
-function filename(name) {
-  return h("span", { class: "filename", title: name || "" }, name || "–");
-}

@@ -1,4 +1,4 @@
-/* New crack survey (#/crack-surveys/new): the camera, the specimen and the load stages with their photos.
+/* New crack survey (#/crack-surveys/new): the camera, the specimen and the load steps with their photos.
  *
  * On each photo a click adds a control point; a point is dragged (or moved with the arrow keys) to place
  * it, and its position on the specimen is typed beside it: model X, Y in mm on a plate (Z = 0), X, Y, Z on a
@@ -10,7 +10,8 @@
 
 import { FieldError, specimenFields } from "./crack-survey-specimen.js";
 import { formatMm, planView } from "./mesh-plan.js";
-import { api, apiForm, breadcrumb, formatDate, h, messageOf } from "./lib.js";
+import { JobKind, JobStatus } from "./kinds.js";
+import { api, apiForm, breadcrumb, formatDate, h, messageOf, onAbort, plural } from "./lib.js";
 
 let lastId = 0;
 const uid = (prefix) => `${prefix}-${++lastId}`;
@@ -19,13 +20,13 @@ export function renderNewCrackSurvey(view, root) {
   document.title = "New crack survey · Fotoskhema";
   const camera = cameraFields(view);
   const specimen = specimenFields();
-  const stages = stageList(view, specimen);
+  const steps = stepList(view, specimen);
   const error = h("p", { class: "form-error", role: "alert", "data-testid": "survey-error" });
   const status = h("p", { class: "muted small", role: "status", "aria-live": "polite" });
   const submit = h("button", { type: "submit", class: "btn primary", "data-testid": "submit-survey" }, "Start the survey");
   const form = h("form", { class: "form survey-form", novalidate: true, "aria-label": "New crack survey" },
     h("div", { class: "survey-top" }, camera.node, specimen.node),
-    stages.node,
+    steps.node,
     h("section", { class: "card submit-card" }, error, h("div", { class: "row" }, submit, status)));
 
   form.addEventListener("submit", async (event) => {
@@ -33,7 +34,7 @@ export function renderNewCrackSurvey(view, root) {
     error.textContent = "";
     let options;
     try {
-      options = { ...camera.read(), ...specimen.read(), stages: stages.read() };
+      options = { ...camera.read(), ...specimen.read(), stages: steps.read() }; // the API's name of the load steps
     } catch (err) {
       if (!(err instanceof FieldError)) throw err;
       error.textContent = err.message;
@@ -41,7 +42,7 @@ export function renderNewCrackSurvey(view, root) {
       return;
     }
     const body = new FormData();
-    for (const file of stages.files()) body.append("files", file, file.name);
+    for (const file of steps.files()) body.append("files", file, file.name);
     const model = specimen.modelFile();
     if (model) body.append("model", model, model.name);
     body.append("options", JSON.stringify(options));
@@ -49,9 +50,9 @@ export function renderNewCrackSurvey(view, root) {
     status.textContent = model ? "Uploading the photos and the model…" : "Uploading the photos…";
     try {
       const job = await apiForm("POST", "/api/crack-surveys", body);
-      if (view.alive) window.location.hash = `#/crack-surveys/${job.id}`;
+      if (!view.signal.aborted) window.location.hash = `#/crack-surveys/${job.id}`;
     } catch (err) {
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       error.textContent = `Not started: ${messageOf(err)}`;
       status.textContent = "";
     } finally {
@@ -62,7 +63,7 @@ export function renderNewCrackSurvey(view, root) {
   root.append(
     breadcrumb(["Crack surveys", "#/crack-surveys"], ["New survey"]),
     h("div", { class: "page-head" }, h("h1", {}, "New crack survey"),
-      h("p", { class: "lead" }, "For each load stage, add its photos and click control points on each (at least four on a plate, six on a mesh model): points of the specimen whose position you know in the model's mm.")),
+      h("p", { class: "lead" }, "For each load step, add its photos and click control points on each (at least four on a plate, six on a mesh model): points of the specimen whose position you know in the model's mm.")),
     form,
   );
 }
@@ -82,15 +83,15 @@ function cameraFields(view) {
     json.disabled = !fromJson.checked;
   };
   for (const radio of [fromJob, fromJson]) radio.addEventListener("change", () => { touched = true; sync(); });
-  api("GET", "/api/jobs").then((jobs) => {
-    if (!view.alive) return;
-    const done = jobs.filter((j) => j.kind === "calibration" && j.status === "succeeded").sort((a, b) => b.id - a.id);
+  api("GET", "/api/jobs", { signal: view.signal }).then((jobs) => {
+    if (view.signal.aborted) return;
+    const done = jobs.filter((j) => j.kind === JobKind.CALIBRATION && j.status === JobStatus.SUCCEEDED).sort((a, b) => b.id - a.id);
     select.replaceChildren(...(done.length ? done.map((j) => h("option", { value: j.id }, `Calibration #${j.id} · ${formatDate(j.created_at)}`))
       : [h("option", { value: "" }, "No finished calibration job")]));
     if (!done.length && !touched) fromJson.checked = true;
     sync();
   }).catch((err) => {
-    if (view.alive) select.replaceChildren(h("option", { value: "" }, `Could not list the jobs: ${messageOf(err)}`));
+    if (!view.signal.aborted) select.replaceChildren(h("option", { value: "" }, `Could not list the jobs: ${messageOf(err)}`));
   });
   sync();
 
@@ -118,40 +119,40 @@ function cameraFields(view) {
   return { node, read };
 }
 
-// -- Load stages -----------------------------------------------------------------------------------
+// -- Load steps ------------------------------------------------------------------------------------
 
-function stageList(view, specimen) {
-  const stages = [];
+function stepList(view, specimen) {
+  const steps = [];
   const box = h("div", { class: "stage-list" });
-  const add = h("button", { type: "button", class: "btn", "data-testid": "add-stage" }, "Add stage");
-  const taken = (name) => stages.findIndex((stage) => stage.names().includes(name));
+  const add = h("button", { type: "button", class: "btn", "data-testid": "add-stage" }, "Add load step");
+  const taken = (name) => steps.findIndex((step) => step.names().includes(name));
   function renumber() {
-    stages.forEach((stage, i) => stage.number(i, stages.length));
+    steps.forEach((step, i) => step.number(i, steps.length));
   }
-  function addStage() {
-    const stage = stageEditor(view, specimen, taken, () => {
-      stages.splice(stages.indexOf(stage), 1);
-      stage.node.remove();
+  function addStep() {
+    const step = stepEditor(view, specimen, taken, () => {
+      steps.splice(steps.indexOf(step), 1);
+      step.node.remove();
       renumber();
     });
-    stages.push(stage);
-    box.append(stage.node);
+    steps.push(step);
+    box.append(step.node);
     renumber();
   }
-  add.addEventListener("click", addStage);
-  addStage();
+  add.addEventListener("click", addStep);
+  addStep();
   const node = h("section", { class: "card", "aria-labelledby": "stages-heading" },
-    h("h2", { id: "stages-heading" }, "Load stages"),
-    h("p", { class: "muted small" }, "In load order: each stage's cracks are compared with those of the stage before."),
+    h("h2", { id: "stages-heading" }, "Load steps"),
+    h("p", { class: "muted small" }, "In load order: each load step's cracks are compared with those of the load step before."),
     box, add);
   return {
     node,
-    read: () => stages.map((stage) => stage.read()),
-    files: () => stages.flatMap((stage) => stage.files()),
+    read: () => steps.map((step) => step.read()),
+    files: () => steps.flatMap((step) => step.files()),
   };
 }
 
-function stageEditor(view, specimen, taken, onRemove) {
+function stepEditor(view, specimen, taken, onRemove) {
   const legend = h("legend", {});
   const labelId = uid("stage-label");
   const loadId = uid("stage-load");
@@ -159,7 +160,7 @@ function stageEditor(view, specimen, taken, onRemove) {
   const load = h("input", { id: loadId, type: "number", step: "any", placeholder: "optional", "data-testid": "stage-load" });
   const files = h("input", { type: "file", accept: "image/*", multiple: true, class: "visually-hidden", "data-testid": "stage-photos" });
   const pick = h("label", { class: "btn small" }, files, "Add photos…");
-  const remove = h("button", { type: "button", class: "btn small danger", "data-testid": "remove-stage" }, "Remove stage");
+  const remove = h("button", { type: "button", class: "btn small danger", "data-testid": "remove-stage" }, "Remove load step");
   const note = h("p", { class: "form-error", role: "alert" });
   const photos = [];
   const photoBox = h("div", { class: "photo-list" });
@@ -170,7 +171,7 @@ function stageEditor(view, specimen, taken, onRemove) {
     for (const file of files.files) {
       const owner = taken(file.name);
       if (owner >= 0) {
-        note.textContent = `${file.name} is already in stage ${owner + 1}: each photo belongs to one stage.`;
+        note.textContent = `${file.name} is already in load step ${owner + 1}: each photo belongs to one load step.`;
         continue;
       }
       const photo = photoEditor(view, file, specimen, () => {
@@ -188,18 +189,18 @@ function stageEditor(view, specimen, taken, onRemove) {
   });
 
   function number(i, count) {
-    if (!label.value || label.value === `Stage ${index + 1}`) label.value = `Stage ${i + 1}`; // not a typed label
+    if (!label.value || label.value === `Load step ${index + 1}`) label.value = `Load step ${i + 1}`; // not a typed label
     index = i;
-    legend.textContent = `Stage ${i + 1}`;
+    legend.textContent = `Load step ${i + 1}`;
     remove.disabled = count < 2;
   }
   function read() {
-    const where = `Stage ${index + 1}`;
+    const where = `Load step ${index + 1}`;
     if (!label.value.trim()) throw new FieldError(label, `${where}: give it a label.`);
     if (!photos.length) throw new FieldError(files, `${where}: add at least one photo.`);
-    const stage = { label: label.value.trim(), photos: photos.map((photo) => photo.read(where)) };
-    if (load.value.trim() !== "") stage.load = Number(load.value);
-    return stage;
+    const step = { label: label.value.trim(), photos: photos.map((photo) => photo.read(where)) };
+    if (load.value.trim() !== "") step.load = Number(load.value);
+    return step;
   }
   const node = h("fieldset", { class: "stage-editor", "data-testid": "stage" },
     legend,
@@ -215,7 +216,7 @@ function stageEditor(view, specimen, taken, onRemove) {
 
 function photoEditor(view, file, specimen, onRemove) {
   const url = URL.createObjectURL(file);
-  view.cleanups.push(() => URL.revokeObjectURL(url));
+  onAbort(view.signal, () => URL.revokeObjectURL(url));
   const img = h("img", { src: url, alt: `Photo ${file.name}: click to add a control point`, draggable: "false", "data-testid": "photo-image" });
   const markers = h("div", { class: "markers" });
   const frame = h("div", { class: "photo-frame" }, img, markers);
@@ -292,7 +293,7 @@ function photoEditor(view, file, specimen, onRemove) {
   function countPoints() {
     const n = points.length;
     const needed = specimen.minPoints();
-    count.textContent = `${n} control point${n === 1 ? "" : "s"}${n < needed ? `: at least ${needed} are needed` : ""}`;
+    count.textContent = `${plural(n, "control point")}${n < needed ? `: at least ${needed} are needed` : ""}`;
     count.classList.toggle("warn", n < needed);
   }
   function followSpecimen() {

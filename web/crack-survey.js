@@ -1,9 +1,10 @@
 /* Crack surveys: the list (#/crack-surveys) and one survey (#/crack-surveys/<id>).
  *
- * A survey's page follows the job like every job page (job.js), then shows each load stage's rectified
- * specimen on a Leaflet map in CRS.Simple (the stage's own tiles), with its cracks drawn over it in their
- * status colour; a slider picks the stage, a table lists its cracks (a row shows its crack on the map), and
- * the control points' residuals say how well each photo was oriented.
+ * A survey's page follows the job like every job page (job.js), then shows each load step's rectified
+ * specimen on a Leaflet map in CRS.Simple (the load step's own tiles), with its cracks drawn over it in their
+ * status colour; a slider picks the load step, a table lists its cracks (a row shows its crack on the map),
+ * and the control points' residuals say how well each photo was oriented. (The report and the options still
+ * name the load steps `stages`, each a `stage`.)
  *
  * The report gives crack paths in mm on the rectification plane (a plate's X right, Y down; a mesh model's
  * plane, `report.plane`, with its origin and axes in model mm) with raster pixel (col, row) centred on
@@ -11,11 +12,26 @@
  * negated. On a mesh, lengths and widths are measured along its surface, not on the plane.
  */
 
-import { api, dataTable, downloadList, factList, formatDate, formatNumber, h, list, statusBadge } from "./lib.js";
-import { CRACK_SURVEY_KIND, renderJobPage, showLoadError } from "./job.js";
+import {
+  api,
+  dataTable,
+  downloadList,
+  factList,
+  filename,
+  formatDate,
+  formatNumber,
+  formatVector,
+  h,
+  jobOutputs,
+  list,
+  onAbort,
+  statusBadge,
+} from "./lib.js";
+import { renderJobPage, showLoadError } from "./job.js";
+import { JobKind } from "./kinds.js";
 import { createMosaicMap } from "./result-map.js";
 
-// The colours of the stage overlay PNGs the worker draws (write_crack_report.STATUS_BGR), as RGB.
+// The colours of the load-step overlay PNGs the worker draws (write_crack_report.STATUS_BGR), as RGB.
 const STATUS_COLOURS = { first: "#ffc800", new: "#ff0000", grown: "#ff00ff", unchanged: "#00c800" };
 const STATUS_TEXT = { first: "first seen", new: "new", grown: "grown", unchanged: "unchanged" };
 
@@ -27,21 +43,22 @@ export async function renderCrackSurveyList(view, root) {
   root.append(
     h("div", { class: "page-head row spread" },
       h("div", {}, h("h1", {}, "Crack surveys"),
-        h("p", { class: "muted" }, "Photograph a specimen at each load stage; get its cracks measured in mm and compared stage by stage.")),
+        h("p", { class: "muted" }, "Photograph a specimen at each load step; get its cracks measured in mm and compared load step by load step.")),
       h("a", { class: "btn primary", href: "#/crack-surveys/new", "data-testid": "new-crack-survey" }, "New crack survey")),
     h("section", { class: "card", "aria-label": "All crack surveys" }, body),
   );
-  const jobs = (await api("GET", "/api/jobs")).filter((job) => job.kind === CRACK_SURVEY_KIND).sort((a, b) => b.id - a.id);
-  if (!view.alive) return;
+  const jobs = (await api("GET", "/api/jobs", { signal: view.signal })).filter((job) => job.kind === JobKind.CRACK_SURVEY)
+    .sort((a, b) => b.id - a.id);
+  if (view.signal.aborted) return;
   body.replaceWith(dataTable({
     caption: "Crack surveys",
-    columns: [{ label: "Survey" }, { label: "Specimen" }, { label: "Stages" }, { label: "Status" }, { label: "Created" }],
+    columns: [{ label: "Survey" }, { label: "Specimen" }, { label: "Load steps" }, { label: "Status" }, { label: "Created" }],
     rows: jobs.map((job) => {
       const options = job.options || {};
       return { attrs: { "data-testid": "survey-row" }, cells: [
         h("a", { class: "strong", href: `#/crack-surveys/${job.id}` }, `Survey #${job.id}`),
         specimenSize(options.specimen),
-        list(options.stages).map((stage) => stage.label).join(", ") || "–",
+        list(options.stages).map((step) => step.label).join(", ") || "–",
         statusBadge(job.status),
         formatDate(job.created_at),
       ] };
@@ -54,8 +71,8 @@ export async function renderCrackSurveyList(view, root) {
 // -- One survey ------------------------------------------------------------------------------------
 
 export async function renderCrackSurvey(view, root, jobId) {
-  const { job } = await api("GET", `/api/crack-surveys/${jobId}`); // 404 for a job of any other kind
-  if (!view.alive) return;
+  const { job } = await api("GET", `/api/crack-surveys/${jobId}`, { signal: view.signal }); // 404 for a job of any other kind
+  if (view.signal.aborted) return;
   const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
   const residuals = h("section", { class: "card", "aria-labelledby": "residuals-heading", "data-testid": "residuals", hidden: true });
   renderJobPage(view, root, job, {
@@ -69,25 +86,26 @@ async function showSurvey(view, jobId, card, residualCard) {
   const heading = () => h("h2", { id: "result-heading" }, "Cracks");
   card.hidden = false;
   card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the survey…"));
-  const tilejsons = new Map(); // stage -> promise of its TileJSON, asked for once
-  const stageTiles = (s) => {
-    if (!tilejsons.has(s)) tilejsons.set(s, api("GET", `/tiles/${jobId}/stages/${s}/tilejson.json`));
+  const { signal } = view;
+  const tilejsons = new Map(); // load step -> promise of its TileJSON, asked for once
+  const stepTiles = (s) => {
+    if (!tilejsons.has(s)) tilejsons.set(s, api("GET", `/tiles/${jobId}/load-steps/${s}/tilejson.json`, { signal }));
     return tilejsons.get(s);
   };
   const [data, outputs, tilejson] = await Promise.all([
-    api("GET", `/api/crack-surveys/${jobId}`),
-    api("GET", `/api/jobs/${jobId}/outputs`).then((d) => (d && d.outputs) || []),
-    stageTiles(0),
+    api("GET", `/api/crack-surveys/${jobId}`, { signal }),
+    jobOutputs(jobId, { signal }),
+    stepTiles(0),
   ]);
-  if (!view.alive) return;
+  if (signal.aborted) return;
   const report = data && data.result;
-  const stages = list(report && report.stages);
-  if (!stages.length) {
+  const steps = list(report && report.stages);
+  if (!steps.length) {
     card.replaceChildren(heading(), h("p", { class: "alert error", role: "alert" }, "The job finished but wrote no report."));
     return;
   }
   const mapNode = h("div", { class: "map specimen-map", "data-testid": "map", role: "region", "aria-label": "Specimen map" });
-  const stagePanel = h("div", { class: "control" });
+  const stepPanel = h("div", { class: "control" });
   const legend = h("div", { class: "control" });
   const tableBox = h("div", { class: "crack-table" });
   const plane = meshPlane(report);
@@ -99,60 +117,60 @@ async function showSurvey(view, jobId, card, residualCard) {
       + "crack lengths and widths are measured along its surface, so a crack on a curve is longer than it looks here.")] : []),
     ...(Array.isArray(report.warnings) ? report.warnings : []).filter((text) => typeof text === "string")
       .map((text) => h("p", { class: "alert warning", role: "status", "data-testid": "survey-warning" }, text)),
-    h("div", { class: "result-grid" }, mapNode, h("div", { class: "map-controls" }, stagePanel, legend)),
+    h("div", { class: "result-grid" }, mapNode, h("div", { class: "map-controls" }, stepPanel, legend)),
     tableBox,
-    h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(stages))),
+    h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(steps))),
   );
   const { map, mosaic } = createMosaicMap(mapNode, tilejson, "", "Specimen: Fotoskhema");
-  view.cleanups.push(() => map.remove());
-  const table = { node: null, select: () => {} }; // the current stage's, replaced by show()
+  onAbort(signal, () => map.remove());
+  const table = { node: null, select: () => {} }; // the current load step's, replaced by show()
   const cracks = crackLayer(map, report.mm_per_px, (id) => table.select(id, true));
-  const slider = stageSlider(stages, (s) => show(s));
+  const slider = stepSlider(steps, (s) => show(s));
   let current = 0;
 
   function show(s) {
     current = s;
-    const stage = stages[s];
-    stagePanel.replaceChildren(slider, stageFacts(stage, stages[s - 1], jobId, plane));
-    legend.replaceChildren(...legendList(list(stage.cracks)));
-    cracks.draw(list(stage.cracks));
-    Object.assign(table, crackTable(stage, (id) => cracks.select(id)));
+    const step = steps[s];
+    stepPanel.replaceChildren(slider, stepFacts(step, steps[s - 1], jobId, plane));
+    legend.replaceChildren(...legendList(list(step.cracks)));
+    cracks.draw(list(step.cracks));
+    Object.assign(table, crackTable(step, (id) => cracks.select(id)));
     tableBox.replaceChildren(table.node);
-    stageTiles(s).then((tiles) => {
-      if (view.alive && current === s) mosaic.setUrl(tiles.tiles[0]);
-    }).catch(showLoadError(view, card, `tiles of ${stage.label}`));
+    stepTiles(s).then((tiles) => {
+      if (!signal.aborted && current === s) mosaic.setUrl(tiles.tiles[0]);
+    }).catch(showLoadError(view, card, `tiles of ${step.label}`));
   }
   show(0);
   residualCard.hidden = false;
-  residualCard.replaceChildren(...residualSection(list(report.photos), stages));
+  residualCard.replaceChildren(...residualSection(list(report.photos), steps));
 }
 
-function stageSlider(stages, onStage) {
+function stepSlider(steps, onStep) {
   const output = h("output", { for: "stage-slider", class: "muted small", "data-testid": "stage-number" });
   const slider = h("input", {
-    id: "stage-slider", type: "range", min: 0, max: stages.length - 1, step: 1, value: 0,
-    "data-testid": "stage-slider", disabled: stages.length < 2,
+    id: "stage-slider", type: "range", min: 0, max: steps.length - 1, step: 1, value: 0,
+    "data-testid": "stage-slider", disabled: steps.length < 2,
   });
   const label = () => {
     const s = Number(slider.value);
-    output.textContent = `${s + 1} of ${stages.length}`;
-    slider.setAttribute("aria-valuetext", `Stage ${s + 1}: ${stages[s].label}`);
+    output.textContent = `${s + 1} of ${steps.length}`;
+    slider.setAttribute("aria-valuetext", `Load step ${s + 1}: ${steps[s].label}`);
   };
   slider.addEventListener("input", () => {
     label();
-    onStage(Number(slider.value));
+    onStep(Number(slider.value));
   });
   label();
-  return h("div", {}, h("label", { for: "stage-slider" }, "Load stage ", output), slider);
+  return h("div", {}, h("label", { for: "stage-slider" }, "Load step ", output), slider);
 }
 
-/** The stage's name, load and figures (and a mesh's rectification plane), and what changed since the stage before. */
-function stageFacts(stage, previous, jobId, plane) {
-  const cracks = list(stage.cracks);
+/** The load step's name, load and figures (and a mesh's rectification plane), and what changed since the load step before. */
+function stepFacts(step, previous, jobId, plane) {
+  const cracks = list(step.cracks);
   const counts = countBy(cracks);
   let changes;
   if (previous) {
-    const growth = (stage.total_length_mm ?? NaN) - (previous.total_length_mm ?? NaN);
+    const growth = (step.total_length_mm ?? NaN) - (previous.total_length_mm ?? NaN);
     const grownBy = cracks.reduce((sum, c) => sum + (c.status === "grown" && Number.isFinite(c.growth_mm) ? c.growth_mm : 0), 0);
     changes = [
       h("strong", {}, `Since ${previous.label}: `),
@@ -160,23 +178,23 @@ function stageFacts(stage, previous, jobId, plane) {
       `Total length ${signed(growth)} mm`, counts.grown ? ` (the grown cracks ${signed(grownBy)} mm)` : "", ".",
     ];
   } else {
-    changes = [h("strong", {}, "First stage: "), `${cracks.length} crack(s), nothing to compare with.`];
+    changes = [h("strong", {}, "First load step: "), `${cracks.length} crack(s), nothing to compare with.`];
   }
   return h("div", { class: "stage-facts" },
     h("p", { class: "stage-title strong", "data-testid": "stage-title" },
-      stage.label, Number.isFinite(stage.load) ? h("span", { class: "muted" }, ` · load ${stage.load}`) : null),
+      step.label, Number.isFinite(step.load) ? h("span", { class: "muted" }, ` · load ${step.load}`) : null),
     h("p", { class: "small", "data-testid": "stage-changes" }, changes),
     factList([
       ["Cracks", String(cracks.length), { "data-testid": "stage-count" }],
-      ["Total length", formatNumber(stage.total_length_mm, 1, "mm")],
-      ["Mean width", formatNumber(stage.mean_width_mm, 2, "mm")],
-      ["Max width", formatNumber(stage.max_width_mm, 2, "mm")],
-      ["Seen", formatNumber(100 * stage.coverage, 0, "%")],
+      ["Total length", formatNumber(step.total_length_mm, 1, "mm")],
+      ["Mean width", formatNumber(step.mean_width_mm, 2, "mm")],
+      ["Max width", formatNumber(step.max_width_mm, 2, "mm")],
+      ["Seen", formatNumber(100 * step.coverage, 0, "%")],
       ...(plane ? plane.rows : []),
     ]),
-    stage.overlay ? h("p", { class: "small" }, h("a", {
-      href: `/api/jobs/${jobId}/outputs/${encodeURIComponent(stage.overlay)}`, download: stage.overlay, "data-testid": "stage-overlay",
-    }, "This stage with its cracks drawn (PNG)")) : null);
+    step.overlay ? h("p", { class: "small" }, h("a", {
+      href: `/api/jobs/${jobId}/outputs/${encodeURIComponent(step.overlay)}`, download: step.overlay, "data-testid": "stage-overlay",
+    }, "This load step with its cracks drawn (PNG)")) : null);
 }
 
 function legendList(cracks) {
@@ -189,7 +207,7 @@ function legendList(cracks) {
   ];
 }
 
-/** The cracks of one stage as polylines over the tiles; `select(id)` highlights one and zooms to it. */
+/** The cracks of one load step as polylines over the tiles; `select(id)` highlights one and zooms to it. */
 function crackLayer(map, mmPerPx, onClick) {
   const group = L.featureGroup().addTo(map);
   const lines = new Map();
@@ -223,10 +241,10 @@ function crackLayer(map, mmPerPx, onClick) {
   return { draw, select };
 }
 
-/** The crack table of one stage; `select(id, scroll)` marks a row (and scrolls to it for a map click). */
-function crackTable(stage, onSelect) {
+/** The crack table of one load step; `select(id, scroll)` marks a row (and scrolls to it for a map click). */
+function crackTable(step, onSelect) {
   const rows = new Map();
-  const cracks = list(stage.cracks);
+  const cracks = list(step.cracks);
   function select(id, scroll) {
     for (const [key, row] of rows) row.classList.toggle("selected", key === id);
     const row = rows.get(id);
@@ -234,9 +252,9 @@ function crackTable(stage, onSelect) {
     onSelect(id);
   }
   const node = h("div", {},
-    h("h3", { id: "crack-table-heading" }, `Cracks of ${stage.label} (${cracks.length})`),
+    h("h3", { id: "crack-table-heading" }, `Cracks of ${step.label} (${cracks.length})`),
     dataTable({
-      caption: `Cracks of ${stage.label}`,
+      caption: `Cracks of ${step.label}`,
       columns: [{ label: "Crack" }, { label: "Status" }, { label: "Length mm", num: true }, { label: "Mean width mm", num: true },
         { label: "Max width mm", num: true }, { label: "Orientation", num: true }, { label: "Growth mm", num: true }],
       rows: cracks.map((crack) => ({
@@ -249,7 +267,7 @@ function crackTable(stage, onSelect) {
         ],
       })),
       attrs: { "data-testid": "crack-table", "aria-labelledby": "crack-table-heading" },
-      empty: "No crack found in this stage.",
+      empty: "No crack found in this load step.",
     }));
   node.querySelectorAll('[data-testid="crack-row"]').forEach((row) => {
     rows.set(Number(row.dataset.crack), row);
@@ -258,20 +276,20 @@ function crackTable(stage, onSelect) {
   return { node, select };
 }
 
-function residualSection(photos, stages) {
+function residualSection(photos, steps) {
   return [
     h("h2", { id: "residuals-heading" }, "Control points"),
     h("p", { class: "muted small" }, "How well each photo's control points fit its oriented camera: the root mean square of their residuals, in photo pixels and on the specimen."),
     dataTable({
       caption: "Control-point residuals per photo",
-      columns: [{ label: "Photo" }, { label: "Stage" }, { label: "Points", num: true }, { label: "RMS px", num: true },
+      columns: [{ label: "Photo" }, { label: "Load step" }, { label: "Points", num: true }, { label: "RMS px", num: true },
         { label: "RMS mm", num: true }, { label: "Worst point", num: true }],
       rows: photos.map((photo) => {
         const points = list(photo.points);
         const worst = points.reduce((a, b) => ((b.error_px ?? -1) > (a ? a.error_px ?? -1 : -1) ? b : a), null);
         return { attrs: { "data-testid": "residual-row" }, cells: [
-          h("span", { class: "filename", title: photo.image || "" }, photo.image || "–"),
-          (stages[photo.stage] || {}).label || "–",
+          filename(photo.image),
+          (steps[photo.stage] || {}).label || "–",
           String(points.length),
           formatNumber(photo.rms_px, 2),
           formatNumber(photo.rms_mm, 3),
@@ -287,12 +305,12 @@ function residualSection(photos, stages) {
 
 // -- Helpers ---------------------------------------------------------------------------------------
 
-function outputLabel(stages) {
+function outputLabel(steps) {
   const names = { "cracks.geojson": "Cracks (GeoJSON, specimen mm)", "cracks.csv": "Cracks (CSV)", "report.json": "Survey report (JSON)" };
   return (name) => {
-    const m = /^stage_(\d+)_(rectified|overlay)\./.exec(name);
+    const m = /^stage_(\d+)_(rectified|overlay)\./.exec(name); // the worker's file names of a load step
     if (!m) return names[name] || name;
-    const label = (stages[Number(m[1])] || {}).label || `stage ${Number(m[1]) + 1}`;
+    const label = (steps[Number(m[1])] || {}).label || `load step ${Number(m[1]) + 1}`;
     return m[2] === "rectified" ? `${label}: rectified specimen (COG)` : `${label}: cracks drawn (PNG)`;
   };
 }
@@ -308,8 +326,10 @@ function meshPlane(report) {
   const specimen = report.specimen || {};
   const plane = report.plane;
   if (!specimen.mesh || !plane) return null;
-  const vector = (v, digits) => (Array.isArray(v) && v.length === 3 && v.every(Number.isFinite)
-    ? `(${v.map((c) => c.toFixed(digits)).join(", ")})` : "–");
+  const vector = (v, digits) => {
+    const text = formatVector(v, digits, 3);
+    return text === "–" ? text : `(${text})`;
+  };
   return {
     how: specimen.plane ? "the plane through the three points given" : "its best-fit plane",
     rows: [

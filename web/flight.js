@@ -11,18 +11,21 @@ import {
   h,
   humanize,
   messageOf,
+  onAbort,
   parseJson,
+  plural,
   progressBar,
   statusBadge,
 } from "./lib.js";
+import { JobKind } from "./kinds.js";
 
 const JOB_POLL_MS = 3000; // how often the job list refreshes while a job is active
 
 // -- Flight page ---------------------------------------------------------------------------------
 
 export async function renderFlight(view, root, flightId) {
-  const flight = await api("GET", `/api/flights/${flightId}`);
-  if (!view.alive) return;
+  const flight = await api("GET", `/api/flights/${flightId}`, { signal: view.signal });
+  if (view.signal.aborted) return;
   document.title = `${flight.name} · Fotoskhema`;
   let images = flight.images || [];
 
@@ -30,7 +33,7 @@ export async function renderFlight(view, root, flightId) {
   const imagesBody = h("div", { class: "card-body" });
   const jobs = jobsPanel(view, flightId);
   function showImages() {
-    countText.textContent = `${images.length} photo${images.length === 1 ? "" : "s"}`;
+    countText.textContent = plural(images.length, "photo");
     imagesBody.replaceChildren(imageTable(images));
     jobs.setImageCount(images.length);
   }
@@ -82,7 +85,7 @@ function uploadPanel(view, flightId, onUploaded) {
     h("p", { class: "muted small" }, "JPEG or TIFF frames, with EXIF GPS for a georeferenced map. Several files per upload."),
   );
   let xhr = null;
-  view.cleanups.push(() => xhr && xhr.abort());
+  onAbort(view.signal, () => xhr && xhr.abort());
 
   function finish() {
     xhr = null;
@@ -95,7 +98,7 @@ function uploadPanel(view, flightId, onUploaded) {
     if (!files.length || xhr) return;
     const form = new FormData();
     for (const file of files) form.append("files", file, file.name);
-    const label = `${files.length} photo${files.length === 1 ? "" : "s"}`;
+    const label = plural(files.length, "photo");
     const totalBytes = files.reduce((sum, f) => sum + f.size, 0);
     zone.classList.add("busy");
     input.disabled = true;
@@ -124,7 +127,7 @@ function uploadPanel(view, flightId, onUploaded) {
       finish();
       if (request.status >= 200 && request.status < 300 && data && Array.isArray(data.images)) {
         bar.tone("done");
-        status.textContent = `Uploaded ${data.images.length} photo${data.images.length === 1 ? "" : "s"}.`;
+        status.textContent = `Uploaded ${plural(data.images.length, "photo")}.`;
         onUploaded(data.images);
       } else {
         bar.tone("error");
@@ -256,10 +259,10 @@ function gcpUpload(view, flightId) {
     status.textContent = `Checking ${file.name}…`;
     try {
       const summary = await apiForm("PUT", `/api/flights/${flightId}/gcps`, form);
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       status.textContent = gcpSummary(summary || {});
     } catch (err) {
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       status.textContent = "";
       error.textContent = `Not stored (the previous GCP file, if any, is kept): ${messageOf(err)}`;
     } finally {
@@ -282,7 +285,6 @@ function gcpUpload(view, flightId) {
 }
 
 function gcpSummary(s) {
-  const plural = (n, word) => `${n ?? "?"} ${word}${n === 1 ? "" : "s"}`;
   const missing = Array.isArray(s.images_not_in_flight) ? s.images_not_in_flight : [];
   const tail = missing.length ? ` Not in this flight: ${missing.join(", ")}.` : "";
   return `Stored ${s.file || "the GCP file"}: ${plural(s.points, "point")} (${s.with_position ?? "?"} with a position), `
@@ -297,13 +299,13 @@ function jobsPanel(view, flightId) {
     "Start mosaic");
   const mode = modeChoice();
   let timer = null;
-  view.cleanups.push(() => clearTimeout(timer));
+  onAbort(view.signal, () => clearTimeout(timer));
 
   start.addEventListener("click", async () => {
     start.disabled = true;
     error.textContent = "";
     try {
-      const job = await api("POST", "/api/jobs", { flight_id: flightId, kind: "mosaic", options: mode.options() });
+      const job = await api("POST", "/api/jobs", { body: { flight_id: flightId, kind: JobKind.MOSAIC, options: mode.options() } });
       window.location.hash = `#/jobs/${job.id}`;
     } catch (err) {
       error.textContent = messageOf(err);
@@ -315,12 +317,12 @@ function jobsPanel(view, flightId) {
     clearTimeout(timer);
     let jobs;
     try {
-      jobs = await api("GET", `/api/jobs?flight_id=${flightId}`);
+      jobs = await api("GET", `/api/jobs?flight_id=${flightId}`, { signal: view.signal });
     } catch (err) {
-      if (view.alive) list.replaceChildren(h("p", { class: "form-error" }, messageOf(err)));
+      if (!view.signal.aborted) list.replaceChildren(h("p", { class: "form-error" }, messageOf(err)));
       return;
     }
-    if (!view.alive) return;
+    if (view.signal.aborted) return;
     list.replaceChildren(jobItems(jobs));
     if (jobs.some((job) => ACTIVE.has(job.status))) timer = setTimeout(refresh, JOB_POLL_MS);
   }

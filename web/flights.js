@@ -23,12 +23,13 @@ export async function renderFlightList(view, root) {
       createFlightForm(),
     ),
   );
-  const flights = await api("GET", "/api/flights");
-  if (!view.alive) return;
+  const { signal } = view;
+  const flights = await api("GET", "/api/flights", { signal });
+  if (signal.aborted) return;
   const jobLists = await Promise.all(
-    flights.map((f) => api("GET", `/api/jobs?flight_id=${f.id}`).catch(() => [])),
+    flights.map((f) => api("GET", `/api/jobs?flight_id=${f.id}`, { signal }).catch(() => [])),
   );
-  if (!view.alive) return;
+  if (signal.aborted) return;
   listBody.replaceChildren(
     flights.length
       ? flightTable(flights, jobLists)
@@ -99,7 +100,7 @@ function createFlightForm() {
     }
     submit.disabled = true;
     try {
-      const flight = await api("POST", "/api/flights", { name: value, description: description.value.trim() });
+      const flight = await api("POST", "/api/flights", { body: { name: value, description: description.value.trim() } });
       window.location.hash = `#/flights/${flight.id}`;
     } catch (err) {
       error.textContent = messageOf(err);

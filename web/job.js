@@ -10,30 +10,32 @@ import {
   formatSeconds,
   h,
   humanize,
+  jobOutputs,
   messageOf,
+  onAbort,
   parseJson,
   progressBar,
   statusBadge,
 } from "./lib.js";
 import { CALIBRATION_KINDS, showCalibration } from "./calibration.js";
+import { JobKind, JobStatus } from "./kinds.js";
 import { showQuality } from "./quality.js";
 import { showResult } from "./result-map.js";
-
-export const CRACK_SURVEY_KIND = "crack_survey";
 
 // -- Job page ------------------------------------------------------------------------------------
 
 export async function renderJob(view, root, jobId) {
-  const job = await api("GET", `/api/jobs/${jobId}`);
-  if (!view.alive) return;
-  if (job.kind === CRACK_SURVEY_KIND) {
+  const { signal } = view;
+  const job = await api("GET", `/api/jobs/${jobId}`, { signal });
+  if (signal.aborted) return;
+  if (job.kind === JobKind.CRACK_SURVEY) {
     window.location.replace(`#/crack-surveys/${jobId}`); // its own page: map of the specimen, crack table
     return;
   }
   // Calibration jobs belong to no flight: no flight to name, no tiles to show.
   const calibration = CALIBRATION_KINDS.has(job.kind) || job.flight_id === null;
-  const flight = calibration ? null : await api("GET", `/api/flights/${job.flight_id}`).catch(() => null);
-  if (!view.alive) return;
+  const flight = calibration ? null : await api("GET", `/api/flights/${job.flight_id}`, { signal }).catch(() => null);
+  if (signal.aborted) return;
   const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
   const quality = h("section", { class: "card quality", "aria-labelledby": "quality-heading", "data-testid": "quality", hidden: true });
   const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
@@ -64,7 +66,7 @@ export function renderJobPage(view, root, initial, { crumbs, cards, onSucceeded 
     badge.textContent = job.status;
     updated.textContent = formatDate(job.updated_at);
     progress.update(job);
-    if (job.status === "succeeded" && !resultShown) {
+    if (job.status === JobStatus.SUCCEEDED && !resultShown) {
       resultShown = true;
       onSucceeded(job);
     }
@@ -89,7 +91,7 @@ function showOutcome(view, job, result, quality, calibration) {
     return;
   }
   // One outputs request for both cards; the Quality card does not wait for the map's tiles.
-  const outputs = api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []);
+  const outputs = jobOutputs(job.id, { signal: view.signal });
   showResult(view, job, result, outputs).catch(failed(result, "result"));
   outputs.then((list) => showQuality(view, list, quality)).catch(failed(quality, "quality report"));
 }
@@ -97,7 +99,7 @@ function showOutcome(view, job, result, quality, calibration) {
 /** A catch handler that shows, in `card`, that `what` (e.g. "result") could not be loaded. */
 export function showLoadError(view, card, what) {
   return (err) => {
-    if (!view.alive) return;
+    if (view.signal.aborted) return;
     card.hidden = false;
     card.replaceChildren(h("p", { class: "alert error", role: "alert" }, `Could not load the ${what}: ${messageOf(err)}`));
   };
@@ -111,16 +113,16 @@ function followJob(view, jobId, onJob) {
   const handle = (event) => {
     failures = 0;
     const job = parseJson(event.data);
-    if (job && view.alive) onJob(job);
+    if (job && !view.signal.aborted) onJob(job);
   };
   async function poll() {
     try {
-      const job = await api("GET", `/api/jobs/${jobId}`);
-      if (!view.alive) return;
+      const job = await api("GET", `/api/jobs/${jobId}`, { signal: view.signal });
+      if (view.signal.aborted) return;
       onJob(job);
       if (TERMINAL.has(job.status)) return;
-    } catch (_err) {
-      if (!view.alive) return;
+    } catch {
+      if (view.signal.aborted) return;
     }
     timer = setTimeout(poll, 2000);
   }
@@ -138,7 +140,7 @@ function followJob(view, jobId, onJob) {
       if (!timer) poll();
     }
   });
-  view.cleanups.push(() => {
+  onAbort(view.signal, () => {
     source.close();
     clearTimeout(timer);
   });
@@ -158,12 +160,12 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
   retry.addEventListener("click", async () => {
     retry.disabled = true;
     try {
-      const job = await api("POST", `/api/jobs/${jobId}/retry`);
-      if (!view.alive) return;
+      const job = await api("POST", `/api/jobs/${jobId}/retry`); // not aborted by leaving the page: it was asked for
+      if (view.signal.aborted) return;
       onJob(job);
       onRetried();
     } catch (err) {
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       error.hidden = false;
       error.textContent = `Could not retry: ${messageOf(err)}`;
     } finally {
@@ -176,10 +178,10 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
     cancel.disabled = true;
     cancel.textContent = "Cancelling…";
     try {
-      const job = await api("POST", `/api/jobs/${jobId}/cancel`);
-      if (view.alive && job) onJob(job);
+      const job = await api("POST", `/api/jobs/${jobId}/cancel`); // not aborted by leaving the page: it was asked for
+      if (!view.signal.aborted && job) onJob(job);
     } catch (err) {
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       error.hidden = false;
       error.textContent = `Could not cancel: ${messageOf(err)}`;
       cancelling = false;
@@ -190,17 +192,18 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
 
   function update(job) {
     const active = ACTIVE.has(job.status);
-    overall.set(job.status === "succeeded" ? 100 : job.progress || 0);
-    overall.tone(job.status === "succeeded" ? "done" : job.status === "failed" ? "error" : job.status === "cancelled" ? "muted" : "");
-    percent.textContent = `${Math.round(job.status === "succeeded" ? 100 : job.progress || 0)} %`;
+    const succeeded = job.status === JobStatus.SUCCEEDED;
+    overall.set(succeeded ? 100 : job.progress || 0);
+    overall.tone(succeeded ? "done" : job.status === JobStatus.FAILED ? "error" : job.status === JobStatus.CANCELLED ? "muted" : "");
+    percent.textContent = `${Math.round(succeeded ? 100 : job.progress || 0)} %`;
     detail.textContent = stageSentence(job);
     stageList.replaceChildren(...stageRows(job));
-    error.hidden = !job.error || job.status === "succeeded";
+    error.hidden = !job.error || succeeded;
     if (!error.hidden) {
-      error.replaceChildren(h("strong", {}, job.status === "failed" ? "Job failed: " : "Error: "), job.error);
+      error.replaceChildren(h("strong", {}, job.status === JobStatus.FAILED ? "Job failed: " : "Error: "), job.error);
     }
     cancel.hidden = !active;
-    retry.hidden = job.status !== "failed" && job.status !== "cancelled"; // finished stages are kept
+    retry.hidden = job.status !== JobStatus.FAILED && job.status !== JobStatus.CANCELLED; // finished stages are kept
     if (!active) cancelling = false;
     if (!cancelling) {
       cancel.disabled = false;
@@ -224,24 +227,33 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
 }
 
 const READY = {
-  mosaic: "the mosaic is ready",
-  calibration: "the camera is calibrated",
-  stereo_calibration: "the rig is calibrated",
-  crack_survey: "the cracks are measured",
+  [JobKind.MOSAIC]: "the mosaic is ready",
+  [JobKind.CALIBRATION]: "the camera is calibrated",
+  [JobKind.STEREO_CALIBRATION]: "the rig is calibrated",
+  [JobKind.CRACK_SURVEY]: "the cracks are measured",
 };
+
+// The state of a pipeline stage (its row's class `stage-<state>` and its text); running, failed and cancelled as the job's.
+const StageState = Object.freeze({
+  DONE: "done",
+  RUNNING: JobStatus.RUNNING,
+  PENDING: "pending",
+  FAILED: JobStatus.FAILED,
+  CANCELLED: JobStatus.CANCELLED,
+});
 
 function stageSentence(job) {
   const stage = job.stage ? humanize(job.stage) : "";
   switch (job.status) {
-    case "queued":
+    case JobStatus.QUEUED:
       return "Waiting for a worker…";
-    case "running":
+    case JobStatus.RUNNING:
       return [stage || "Starting", job.progress_detail].filter(Boolean).join(" — ");
-    case "succeeded":
+    case JobStatus.SUCCEEDED:
       return `Finished: ${READY[job.kind] || "the result is ready"}.`;
-    case "cancelled":
+    case JobStatus.CANCELLED:
       return `Cancelled${stage ? ` during ${stage.toLowerCase()}` : ""}.`;
-    case "failed":
+    case JobStatus.FAILED:
       return `Failed${stage ? ` during ${stage.toLowerCase()}` : ""}.`;
     default:
       return job.status;
@@ -252,15 +264,16 @@ function stageSentence(job) {
 function stageState(job, name, index) {
   const current = (job.stages || []).indexOf(job.stage);
   const timed = Object.prototype.hasOwnProperty.call(job.timings || {}, name);
-  if (job.status === "succeeded") return "done";
+  if (job.status === JobStatus.SUCCEEDED) return StageState.DONE;
   if (index === current) {
-    if (timed) return "done";
-    if (job.status === "running") return "running";
-    if (job.status === "failed" || job.status === "cancelled") return job.status;
-    return "pending";
+    if (timed) return StageState.DONE;
+    if (job.status === JobStatus.RUNNING) return StageState.RUNNING;
+    if (job.status === JobStatus.FAILED) return StageState.FAILED;
+    if (job.status === JobStatus.CANCELLED) return StageState.CANCELLED;
+    return StageState.PENDING;
   }
-  if (timed || (current >= 0 && index < current)) return "done";
-  return "pending";
+  if (timed || (current >= 0 && index < current)) return StageState.DONE;
+  return StageState.PENDING;
 }
 
 /** Fraction of the running stage from a detail like "frame 4/12"; null when it has none. */
@@ -272,15 +285,14 @@ function detailFraction(detail) {
 
 function stageRows(job) {
   const stages = job.stages && job.stages.length ? job.stages : job.stage ? [job.stage] : [];
-  const labels = { done: "done", running: "running", pending: "pending", failed: "failed", cancelled: "cancelled" };
   return stages.map((name, index) => {
     const state = stageState(job, name, index);
     const bar = progressBar(`${humanize(name)} progress`);
-    if (state === "done") bar.set(100);
-    else if (state === "running") bar.set(detailFraction(job.progress_detail));
-    else if (state === "failed" || state === "cancelled") bar.set(detailFraction(job.progress_detail) ?? 0);
+    if (state === StageState.DONE) bar.set(100);
+    else if (state === StageState.RUNNING) bar.set(detailFraction(job.progress_detail));
+    else if (state === StageState.FAILED || state === StageState.CANCELLED) bar.set(detailFraction(job.progress_detail) ?? 0);
     else bar.set(0);
-    bar.tone(state === "done" ? "done" : state === "failed" ? "error" : state === "cancelled" ? "muted" : "");
+    bar.tone(state === StageState.DONE ? "done" : state === StageState.FAILED ? "error" : state === StageState.CANCELLED ? "muted" : "");
     const seconds = (job.timings || {})[name];
     return h(
       "li",
@@ -289,7 +301,8 @@ function stageRows(job) {
       h("span", { class: "stage-name", title: name }, humanize(name)),
       bar.node,
       h("span", { class: "stage-meta" },
-        state === "running" && job.progress_detail ? job.progress_detail : state === "done" && typeof seconds === "number" ? formatSeconds(seconds) : labels[state]),
+        state === StageState.RUNNING && job.progress_detail ? job.progress_detail
+          : state === StageState.DONE && typeof seconds === "number" ? formatSeconds(seconds) : state), // the state names itself
     );
   });
 }

@@ -4,8 +4,10 @@
  * typed by users cannot inject markup.
  */
 
-export const ACTIVE = new Set(["queued", "running"]);
-export const TERMINAL = new Set(["succeeded", "failed", "cancelled"]);
+import { JobStatus } from "./kinds.js";
+
+export const ACTIVE = new Set([JobStatus.QUEUED, JobStatus.RUNNING]);
+export const TERMINAL = new Set([JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELLED]);
 
 // -- DOM and formatting helpers ------------------------------------------------------------------
 
@@ -70,6 +72,28 @@ export function formatPlusMinus(value, sigma, digits = 2, unit = "") {
   if (text === "–") return text;
   const tail = unit ? ` ${unit}` : "";
   return typeof sigma === "number" && Number.isFinite(sigma) ? `${text} ± ${sigma.toFixed(digits)}${tail}` : `${text}${tail}`;
+}
+
+/** A count ("12"); "–" when it is missing or not finite. */
+export function formatCount(n) {
+  return Number.isFinite(n) ? String(n) : "–";
+}
+
+/** "3 photos", "1 photo" ("? photos" for a missing count). */
+export function plural(n, word) {
+  return `${n ?? "?"} ${word}${n === 1 ? "" : "s"}`;
+}
+
+/** "1.00, 2.50, 3.00": the numbers of `v` (exactly `length` of them, if given); "–" when any is missing. */
+export function formatVector(v, digits, length) {
+  const ok = Array.isArray(v) && v.length > 0 && (length === undefined || v.length === length) && v.every(Number.isFinite);
+  return ok ? v.map((x) => x.toFixed(digits)).join(", ") : "–";
+}
+
+/** A camera parameter: 2 decimals when `fixed` (pixels) or it is large, else 4 significant digits. */
+export function formatParam(value, fixed = false) {
+  if (typeof value !== "number" || !Number.isFinite(value)) return "–";
+  return fixed || Math.abs(value) >= 10 ? value.toFixed(2) : value.toPrecision(4);
 }
 
 export function formatSeconds(s) {
@@ -145,13 +169,22 @@ export function dataTable({ caption, columns, rows, attrs, empty, scroll = true 
   return scroll ? h("div", { class: "table-scroll" }, table) : table;
 }
 
-/** "Downloads": a link per job output ({name, url, size_bytes}), named by `labelOf(name)`; [heading, list]. */
-export function downloadList(outputs, labelOf = (name) => name) {
-  const link = (o) => h("a", { href: o.url, download: o.name, "data-testid": `download-${o.name.replace(/\.[^.]+$/, "")}` },
+/** A file name in a table cell ("–" when missing), its whole name in the tooltip. */
+export function filename(name) {
+  return h("span", { class: "filename", title: name || "" }, name || "–");
+}
+
+/**
+ * "Downloads": a link per job output ({name, url, size_bytes}), named by `labelOf(name)`, its test id
+ * `testidOf(name)`; an output without a url is shown "(not available)". Answers [heading, list].
+ */
+export function downloadList(outputs, labelOf = (name) => name, testidOf = (name) => `download-${name.replace(/\.[^.]+$/, "")}`) {
+  const link = (o) => h("a", { href: o.url, download: o.name, "data-testid": testidOf(o.name) },
     labelOf(o.name), h("span", { class: "muted small" }, ` ${o.name} · ${formatBytes(o.size_bytes)}`));
+  const item = (o) => h("li", {}, o.url ? link(o) : h("span", { class: "muted" }, `${labelOf(o.name)} (not available)`));
   return [
     h("h3", {}, "Downloads"),
-    outputs.length ? h("ul", { class: "plain downloads" }, outputs.map((o) => h("li", {}, link(o))))
+    outputs.length ? h("ul", { class: "plain downloads" }, outputs.map(item))
       : h("p", { class: "muted small" }, "No downloads."),
   ];
 }
@@ -181,29 +214,52 @@ export function parseJson(text) {
   if (!text) return null;
   try {
     return JSON.parse(text);
-  } catch (_err) {
+  } catch {
     return null;
   }
 }
 
-export async function api(method, path, body) {
-  const init = { method, headers: { Accept: "application/json" } };
-  if (body !== undefined) {
-    init.headers["Content-Type"] = "application/json";
-    init.body = JSON.stringify(body);
-  }
-  const response = await fetch(path, init);
+/** The JSON of an answer; an ApiError for an error answer. */
+async function answer(response) {
   const data = parseJson(await response.text());
   if (!response.ok) throw new ApiError(response.status, detailOf(data, response.status, response.statusText));
   return data;
 }
 
+/**
+ * Ask the JSON API; `body` (optional) is sent as JSON. `signal` (an AbortSignal, e.g. the view's) aborts
+ * the request: the promise then rejects with the signal's reason, an AbortError.
+ */
+export async function api(method, path, { body, signal } = {}) {
+  const init = { method, headers: { Accept: "application/json" }, signal };
+  if (body !== undefined) {
+    init.headers["Content-Type"] = "application/json";
+    init.body = JSON.stringify(body);
+  }
+  return answer(await fetch(path, init));
+}
+
 /** Send a multipart form (file uploads) and answer the JSON, like `api`. */
-export async function apiForm(method, path, form) {
-  const response = await fetch(path, { method, body: form, headers: { Accept: "application/json" } });
-  const data = parseJson(await response.text());
-  if (!response.ok) throw new ApiError(response.status, detailOf(data, response.status, response.statusText));
-  return data;
+export async function apiForm(method, path, form, { signal } = {}) {
+  return answer(await fetch(path, { method, body: form, headers: { Accept: "application/json" }, signal }));
+}
+
+/** A job's outputs list ([{ name, url, size_bytes }]). */
+export function jobOutputs(jobId, { signal } = {}) {
+  return api("GET", `/api/jobs/${jobId}/outputs`, { signal }).then((data) => (data && data.outputs) || []);
+}
+
+/** Run `cleanup` when `signal` is aborted (at once if it already is); a failing cleanup is logged. */
+export function onAbort(signal, cleanup) {
+  const run = () => {
+    try {
+      cleanup();
+    } catch (err) {
+      console.warn("cleanup failed", err);
+    }
+  };
+  if (signal.aborted) run();
+  else signal.addEventListener("abort", run, { once: true });
 }
 
 export function messageOf(err) {

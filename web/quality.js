@@ -3,7 +3,20 @@
  * ground control points. Every field may be missing (older reports, planar jobs): it then shows "–".
  */
 
-import { api, dataTable, factList, formatMetres, formatNumber, h, humanize, list } from "./lib.js";
+import {
+  api,
+  dataTable,
+  factList,
+  filename,
+  formatCount,
+  formatMetres,
+  formatNumber,
+  formatParam,
+  formatVector,
+  h,
+  humanize,
+  list,
+} from "./lib.js";
 
 const MODES = {
   planar: "Planar (flat ground)",
@@ -22,8 +35,8 @@ export async function showQuality(view, outputs, card) {
   if (!entry) return;
   card.hidden = false;
   card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the report…"));
-  const report = await api("GET", entry.url);
-  if (!view.alive) return;
+  const report = await api("GET", entry.url, { signal: view.signal });
+  if (view.signal.aborted) return;
   card.replaceChildren(heading(report && report.mode), ...qualityBody(report || {}).filter(Boolean));
 }
 
@@ -82,9 +95,9 @@ function triangulationSection(t) {
       ["Cameras registered", registered, { "data-testid": "registered" }],
       ["RMS reprojection", rmsText(t.rms_px, t.rms_px_original), { "data-testid": "rms-reprojection" }],
       ["Datum", DATUMS[t.datum] || t.datum || "–", { "data-testid": "datum" }],
-      ["Observations", count(t.observations)],
-      ["3D points", count(t.points)],
-      ["Outliers dropped", count(t.outliers_dropped)],
+      ["Observations", formatCount(t.observations)],
+      ["3D points", formatCount(t.points)],
+      ["Outliers dropped", formatCount(t.outliers_dropped)],
       ["GPS residual RMS", formatMetres(t.gps_residual_rms_m)],
     ], { class: "facts wide" }),
     reasons("Not registered", list(t.not_registered), "not-registered", null),
@@ -95,8 +108,8 @@ function triangulationSection(t) {
       columns: [{ label: "Image" }, { label: "RMS px", num: true }, { label: "Observations", num: true }, { label: "GPS residual", num: true }],
       rows: list(t.images).map((img) => ({
         attrs: { "data-testid": "image-residual-row" },
-        cells: [h("span", { class: "filename", title: img.name || "" }, img.name || "–"), formatNumber(img.rms_px, 2),
-          count(img.observations), formatMetres(img.gps_residual_m)],
+        cells: [filename(img.name), formatNumber(img.rms_px, 2),
+          formatCount(img.observations), formatMetres(img.gps_residual_m)],
       })),
       attrs: { "data-testid": "image-residuals" },
       empty: "No per-image residuals in the report.",
@@ -108,7 +121,7 @@ function triangulationSection(t) {
         { label: "Error dx, dy, dz", num: true }, { label: "Error 3D m", num: true }],
       rows: list(t.gcps).map((g) => ({
         attrs: { "data-testid": "gcp-row", "data-role": g.role || "" },
-        cells: [g.id ?? "–", g.role ? humanize(g.role) : "–", count(g.observations), formatNumber(g.residual_px, 2),
+        cells: [g.id ?? "–", g.role ? humanize(g.role) : "–", formatCount(g.observations), formatNumber(g.residual_px, 2),
           errorVector(g.error_m), formatNumber(g.error_3d_m, 3)],
       })),
       attrs: { "data-testid": "gcp-residuals" },
@@ -117,13 +130,9 @@ function triangulationSection(t) {
   );
 }
 
-function count(n) {
-  return Number.isFinite(n) ? String(n) : "–";
-}
-
 function errorVector(v) {
-  if (!Array.isArray(v) || v.length !== 3 || !v.every(Number.isFinite)) return "–";
-  return `${v.map((x) => x.toFixed(3)).join(", ")} m`;
+  const text = formatVector(v, 3, 3);
+  return text === "–" ? text : `${text} m`;
 }
 
 function selfCalibration(params) {
@@ -135,15 +144,10 @@ function selfCalibration(params) {
     dataTable({
       caption: "Camera parameters refined by the adjustment",
       columns: [{ label: "Parameter" }, { label: "Initial", num: true }, { label: "Adjusted", num: true }],
-      rows: Object.entries(params).map(([name, p]) => [name, digitsFor(p && p.initial), digitsFor(p && p.adjusted)]),
+      // focal lengths read well with 2 decimals, distortion terms need more
+      rows: Object.entries(params).map(([name, p]) => [name, formatParam(p && p.initial), formatParam(p && p.adjusted)]),
       attrs: { "data-testid": "self-calibration" },
       scroll: false,
     }),
   );
-}
-
-/** Focal lengths read well with 2 decimals, distortion terms need more. */
-function digitsFor(value) {
-  if (typeof value !== "number" || !Number.isFinite(value)) return "–";
-  return Math.abs(value) >= 10 ? value.toFixed(2) : value.toPrecision(4);
 }

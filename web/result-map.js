@@ -1,6 +1,6 @@
 /* A finished job's mosaic on a Leaflet map (global `L`, loaded before the modules), with its downloads. */
 
-import { api, formatBytes, getConfig, h } from "./lib.js";
+import { api, downloadList, factList, getConfig, h, jobOutputs, onAbort } from "./lib.js";
 
 // -- Result: map and downloads ------------------------------------------------------------------
 
@@ -8,12 +8,13 @@ import { api, formatBytes, getConfig, h } from "./lib.js";
 export async function showResult(view, job, card, outputs) {
   card.hidden = false;
   card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the mosaic…"));
+  const { signal } = view;
   const [tilejson, outputList, config] = await Promise.all([
-    api("GET", `/tiles/${job.id}/tilejson.json`),
-    outputs || api("GET", `/api/jobs/${job.id}/outputs`).then((data) => (data && data.outputs) || []),
+    api("GET", `/tiles/${job.id}/tilejson.json`, { signal }),
+    outputs || jobOutputs(job.id, { signal }),
     getConfig(),
   ]);
-  if (!view.alive) return;
+  if (signal.aborted) return;
   const byName = Object.fromEntries(outputList.map((o) => [o.name, o]));
   const georeferenced = tilejson.georeferenced !== false;
 
@@ -25,12 +26,12 @@ export async function showResult(view, job, card, outputs) {
     h("div", { class: "result-grid" }, mapNode, controls),
   );
   const { map, mosaic } = createMosaicMap(mapNode, tilejson, georeferenced ? config.basemap_url : "");
-  view.cleanups.push(() => map.remove());
+  onAbort(view.signal, () => map.remove());
 
   controls.append(opacityControl(mosaic));
   const footprints = byName["footprints.geojson"];
   controls.append(georeferenced && footprints ? footprintControl(view, map, footprints.url) : footprintUnavailable(georeferenced));
-  controls.append(downloadList(byName), mosaicFacts(tilejson, georeferenced));
+  controls.append(mosaicDownloads(byName), mosaicFacts(tilejson, georeferenced));
 }
 
 /** The tile layer's bounds, pulled in by a hair: a tile that only touches the mosaic's edge would
@@ -78,7 +79,7 @@ export function createMosaicMap(node, tilejson, basemapUrl, attribution = "Mosai
 function hostOf(url) {
   try {
     return new URL(url).hostname;
-  } catch (_err) {
+  } catch {
     return "external";
   }
 }
@@ -102,10 +103,10 @@ function footprintControl(view, map, url) {
     if (box.checked) layer.addTo(map);
     else layer.remove();
   });
-  fetch(url)
+  fetch(url, { signal: view.signal })
     .then((response) => (response.ok ? response.json() : Promise.reject(new Error(`${response.status}`))))
     .then((geojson) => {
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       layer = L.geoJSON(geojson, {
         style: { color: "#f59e0b", weight: 1.5, opacity: 0.9, fillOpacity: 0.04 },
         onEachFeature: (feature, featureLayer) => {
@@ -117,7 +118,7 @@ function footprintControl(view, map, url) {
       note.textContent = `${(geojson.features || []).length} frames`;
     })
     .catch((err) => {
-      if (!view.alive) return;
+      if (view.signal.aborted) return;
       box.disabled = true;
       note.textContent = `unavailable (${err.message})`;
     });
@@ -129,22 +130,17 @@ function footprintUnavailable(georeferenced) {
     georeferenced ? "No frame footprints for this job." : "Frame footprints need GPS: this mosaic has none."));
 }
 
-function downloadList(byName) {
-  const entry = (name, label, testid) => {
-    const output = byName[name];
-    return h("li", {}, output
-      ? h("a", { href: output.url, download: name, "data-testid": testid }, label, h("span", { class: "muted small" }, ` ${name} · ${formatBytes(output.size_bytes)}`))
-      : h("span", { class: "muted" }, `${label} (not available)`));
-  };
-  return h(
-    "div",
-    { class: "control" },
-    h("h3", {}, "Downloads"),
-    h("ul", { class: "plain downloads" },
-      entry("mosaic.tif", "Mosaic (Cloud-Optimized GeoTIFF)", "download-cog"),
-      entry("report.json", "Processing report", "download-report"),
-      byName["footprints.geojson"] ? entry("footprints.geojson", "Frame footprints", "download-footprints") : null),
-  );
+// The mosaic's downloads, in this order; the footprints only when the job wrote them.
+const DOWNLOADS = {
+  "mosaic.tif": { label: "Mosaic (Cloud-Optimized GeoTIFF)", testid: "download-cog" },
+  "report.json": { label: "Processing report", testid: "download-report" },
+  "footprints.geojson": { label: "Frame footprints", testid: "download-footprints", optional: true },
+};
+
+function mosaicDownloads(byName) {
+  const shown = Object.entries(DOWNLOADS).filter(([name, d]) => byName[name] || !d.optional)
+    .map(([name]) => byName[name] || { name }); // without a url: "(not available)"
+  return h("div", { class: "control" }, downloadList(shown, (name) => DOWNLOADS[name].label, (name) => DOWNLOADS[name].testid));
 }
 
 function mosaicFacts(tilejson, georeferenced) {
@@ -154,5 +150,5 @@ function mosaicFacts(tilejson, georeferenced) {
     : [["Size", `${Math.round(east - west)} × ${Math.round(north - south)} px`]];
   rows.push(["Zoom levels", `${tilejson.minzoom} – ${tilejson.maxzoom}`]);
   return h("div", { class: "control" }, h("h3", {}, "Extent"),
-    h("dl", { class: "facts" }, rows.map(([k, v]) => [h("dt", {}, k), h("dd", {}, v)])));
+    factList(rows));
 }

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from celery import Celery
 
-from api.settings import get_settings
+from core.settings import get_settings
 
 
 def make_celery(broker_url: str) -> Celery:

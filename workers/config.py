@@ -1,7 +1,8 @@
-"""The mosaic pipeline's parameters: one typed, validated model, every field with a default.
+"""Every job kind's parameters: one typed, validated model per kind (``JOB_KINDS``: mosaic, calibration,
+stereo calibration, crack survey), every field with a default; ``build_config`` merges a job's options on top.
 
-This module imports only pydantic so that the API can validate a job's options without loading
-OpenCV or the stage code.
+This module imports only pydantic (and ``core.kinds``) so that the API can validate a job's options
+without loading OpenCV or the stage code.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import math
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+
+from core.kinds import JobKind
 
 DistortionTerm = Literal["k1", "k2", "k3", "t1", "t2"]
 Convention = Literal["distort_ideal", "restore_ideal"]
@@ -230,10 +233,13 @@ def _check_on_plate(where: str, points: list[ControlPoint], width_mm: float, hei
     tolerance = 1e-6 * max(width_mm, height_mm)
     for k, point in enumerate(points):
         x, y, z = point.model
-        if not (-tolerance <= x <= width_mm + tolerance and -tolerance <= y <= height_mm + tolerance
-                and abs(z) <= tolerance):
-            raise ValueError(f"{where}: control point {k} at model {list(point.model)} is outside the specimen "
-                             f"(0..{width_mm} x 0..{height_mm} mm, Z = 0)")
+        if not (
+            -tolerance <= x <= width_mm + tolerance and -tolerance <= y <= height_mm + tolerance and abs(z) <= tolerance
+        ):
+            raise ValueError(
+                f"{where}: control point {k} at model {list(point.model)} is outside the specimen "
+                f"(0..{width_mm} x 0..{height_mm} mm, Z = 0)"
+            )
 
 
 def _collinear(model: list[tuple[float, float, float]]) -> bool:
@@ -246,20 +252,26 @@ def _collinear(model: list[tuple[float, float, float]]) -> bool:
     if span == 0.0:
         return True
     direction = [(q - p) / span for p, q in zip(*far, strict=True)]
-    off = max(math.dist(p, [f + t * d for f, d in zip(far[0], direction, strict=True)])
-              for p in model for t in [sum((pi - fi) * d for pi, fi, d in zip(p, far[0], direction, strict=True))])
+    off = max(
+        math.dist(p, [f + t * d for f, d in zip(far[0], direction, strict=True)])
+        for p in model
+        for t in [sum((pi - fi) * d for pi, fi, d in zip(p, far[0], direction, strict=True))]
+    )
     return off <= 1e-3 * span
 
 
 CalibrationConfig.model_rebuild()
 
-JOB_KINDS: dict[str, type[BaseModel]] = {"mosaic": MosaicConfig, "calibration": CalibrationConfig,
-                                         "stereo_calibration": StereoCalibrationConfig,
-                                         "crack_survey": CrackSurveyConfig}
+JOB_KINDS: dict[JobKind, type[BaseModel]] = {
+    JobKind.mosaic: MosaicConfig,
+    JobKind.calibration: CalibrationConfig,
+    JobKind.stereo_calibration: StereoCalibrationConfig,
+    JobKind.crack_survey: CrackSurveyConfig,
+}
 
 
 def build_config(kind: str, options: dict[str, Any] | None) -> BaseModel:
     """Merge ``options`` over the defaults of ``kind``; raises ``pydantic.ValidationError``."""
     if kind not in JOB_KINDS:
-        raise ValueError(f"unknown job kind {kind!r}; known: {sorted(JOB_KINDS)}")
-    return JOB_KINDS[kind].model_validate(options or {})
+        raise ValueError(f"unknown job kind {str(kind)!r}; known: {sorted(map(str, JOB_KINDS))}")
+    return JOB_KINDS[JobKind(kind)].model_validate(options or {})

@@ -64,8 +64,9 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
             raise
         except (Image.DecompressionBombError, Image.DecompressionBombWarning):
             # Pillow's own guard fires on the declared size before we could read it.
-            raise InvalidImageError(f"image declares more than {Image.MAX_IMAGE_PIXELS} px "
-                                    "(a decompression bomb?)", too_large=True) from None
+            raise InvalidImageError(
+                f"image declares more than {Image.MAX_IMAGE_PIXELS} px (a decompression bomb?)", too_large=True
+            ) from None
         except UnidentifiedImageError:
             raise InvalidImageError("not a readable image (JPEG, PNG or TIFF expected)") from None
         except (OSError, SyntaxError, ValueError) as exc:
@@ -79,8 +80,8 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
 def _check_dimensions(width: int, height: int, limits: ImageLimits) -> None:
     if width * height > limits.max_pixels or max(width, height) > limits.max_side:
         raise InvalidImageError(
-            f"image is {width}x{height} px, over the limit of {limits.max_pixels} px "
-            f"and {limits.max_side} px per side", too_large=True
+            f"image is {width}x{height} px, over the limit of {limits.max_pixels} px and {limits.max_side} px per side",
+            too_large=True,
         )
     if min(width, height) < limits.min_side:
         raise InvalidImageError(f"image is {width}x{height} px, under {limits.min_side} px per side")

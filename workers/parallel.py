@@ -19,8 +19,7 @@ def thread_count(requested: int) -> int:
     return requested if requested > 0 else max(1, os.cpu_count() or 1)
 
 
-def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress: ProgressFn,
-                unit: str) -> list[R]:
+def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress: ProgressFn, unit: str) -> list[R]:
     """``[fn(x) for x in items]`` on ``threads`` threads, reporting "unit k/n" as results arrive.
 
     Progress is reported from the calling thread only (it may write the job record).

@@ -13,8 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from core.kinds import JobKind
+from workers.algorithms.geometry import Camera
 from workers.config import build_config
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
 @dataclass(frozen=True)
@@ -25,7 +27,7 @@ class StageSpec:
 
 # A pipeline is a job kind, or a kind and the option that changes its stages ("mosaic.ortho").
 PIPELINES: dict[str, tuple[StageSpec, ...]] = {
-    "mosaic": (
+    JobKind.mosaic: (
         StageSpec("load_images", 10),
         StageSpec("detect_features", 20),
         StageSpec("match_features", 25),
@@ -34,7 +36,7 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("compose_mosaic", 30),
         StageSpec("write_report", 3),
     ),
-    "mosaic.ortho": (
+    f"{JobKind.mosaic}.ortho": (
         StageSpec("load_images", 10),
         StageSpec("detect_features", 20),
         StageSpec("match_features", 25),
@@ -43,10 +45,10 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("compose_mosaic", 30),
         StageSpec("write_report", 3),
     ),
-    "calibration": (StageSpec("detect_corners", 60), StageSpec("calibrate_camera", 40)),
-    "calibration.plumb_line": (StageSpec("fit_plumb_line", 100),),
-    "stereo_calibration": (StageSpec("detect_corners", 60), StageSpec("calibrate_stereo", 40)),
-    "crack_survey": (
+    JobKind.calibration: (StageSpec("detect_corners", 60), StageSpec("calibrate_camera", 40)),
+    f"{JobKind.calibration}.plumb_line": (StageSpec("fit_plumb_line", 100),),
+    JobKind.stereo_calibration: (StageSpec("detect_corners", 60), StageSpec("calibrate_stereo", 40)),
+    JobKind.crack_survey: (
         StageSpec("orient_camera", 5),
         StageSpec("rectify_specimen", 15),
         StageSpec("detect_cracks", 50),
@@ -56,11 +58,22 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
     ),
 }
 # The option of a kind that selects a variant pipeline, and its default.
-VARIANT_OPTIONS = {"mosaic": ("mode", "planar"), "calibration": ("method", "chessboard")}
+VARIANT_OPTIONS: dict[str, tuple[str, str]] = {
+    JobKind.mosaic: ("mode", "planar"),
+    JobKind.calibration: ("method", "chessboard"),
+}
 
 
 class PipelineError(Exception):
     """A stage cannot go on; the message tells the user what is wrong with their data or options."""
+
+
+def option_camera(data: dict[str, Any] | None, option: str) -> Camera:
+    """The camera a job's option ``option`` holds (camera JSON); a bad one is the user's to fix."""
+    try:
+        return Camera.from_json(data or {})
+    except ValueError as exc:
+        raise PipelineError(f"options.{option}: {exc}") from None
 
 
 def pipeline_key(kind: str, options: dict[str, Any] | None) -> str:
@@ -100,8 +113,9 @@ def stage_function(stage: str) -> Callable[..., dict[str, Any]]:
     return module.run  # type: ignore[no-any-return]
 
 
-def run_stage(ws: JobWorkspace, pipeline: str, stage: str, progress: ProgressFn = noop_progress,
-              rerun: bool = False) -> dict[str, Any]:
+def run_stage(
+    ws: JobWorkspace, pipeline: str, stage: str, progress: ProgressFn = noop_progress, rerun: bool = False
+) -> dict[str, Any]:
     """Run one stage over ``ws`` unless its report says it already ran; save and return its report."""
     if not rerun and (done := ws.load_stage_report(stage)) is not None:
         return done
@@ -113,8 +127,12 @@ def run_stage(ws: JobWorkspace, pipeline: str, stage: str, progress: ProgressFn 
     return report
 
 
-def process_directory(src_dir: Path, out_dir: Path, options: dict[str, Any] | None = None,
-                      progress: Callable[[str, float, str], None] | None = None) -> dict[str, Any]:
+def process_directory(
+    src_dir: Path,
+    out_dir: Path,
+    options: dict[str, Any] | None = None,
+    progress: Callable[[str, float, str], None] | None = None,
+) -> dict[str, Any]:
     """Run the whole mosaic pipeline in this process over the images in ``src_dir``.
 
     ``out_dir`` becomes the job workspace: ``mosaic.tif`` and ``report.json`` end up there.
@@ -132,10 +150,10 @@ def process_directory(src_dir: Path, out_dir: Path, options: dict[str, Any] | No
     if len(frames) < 2:
         raise PipelineError(f"{src_dir} holds {len(frames)} usable image(s); a mosaic needs at least 2")
     ws = JobWorkspace(out_dir)
-    ws.save_config(build_config("mosaic", options).model_dump())
+    ws.save_config(build_config(JobKind.mosaic, options).model_dump())
     ws.save_inputs(frames)
-    pipeline = pipeline_key("mosaic", options)
+    pipeline = pipeline_key(JobKind.mosaic, options)
     for name in stage_names(pipeline):
         stage_progress = (lambda f, d, _n=name: progress(_n, f, d)) if progress else noop_progress
         run_stage(ws, pipeline, name, stage_progress)
-    return dict(read_json(ws.report_file()))
+    return ws.load_report()

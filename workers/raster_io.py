@@ -21,8 +21,9 @@ BlockWriter = Callable[[Window, np.ndarray, np.ndarray], None]
 
 
 @contextmanager
-def open_block_writer(path: Path, width: int, height: int, crs: int | str | None,
-                      transform: list[float] | None) -> Iterator[BlockWriter]:
+def open_block_writer(
+    path: Path, width: int, height: int, crs: int | str | None, transform: list[float] | None
+) -> Iterator[BlockWriter]:
     """A 3-band uint8 tiled GeoTIFF with an internal mask; yields ``write(window, rgb, mask)``.
 
     ``transform`` (rasterio's affine a, b, c, d, e, f) places the pixels; ``crs`` names their CRS: an EPSG
@@ -31,15 +32,25 @@ def open_block_writer(path: Path, width: int, height: int, crs: int | str | None
     ``rgb`` is (h, w, 3) uint8 in R, G, B order and ``mask`` (h, w) bool, True where there is data.
     """
     profile: dict[str, Any] = {
-        "driver": "GTiff", "width": width, "height": height, "count": 3, "dtype": "uint8",
-        "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate",
-        "photometric": "RGB", "BIGTIFF": "IF_SAFER", "num_threads": "ALL_CPUS",
+        "driver": "GTiff",
+        "width": width,
+        "height": height,
+        "count": 3,
+        "dtype": "uint8",
+        "tiled": True,
+        "blockxsize": 512,
+        "blockysize": 512,
+        "compress": "deflate",
+        "photometric": "RGB",
+        "BIGTIFF": "IF_SAFER",
+        "num_threads": "ALL_CPUS",
     }
     if transform is not None:
         profile["transform"] = Affine(*transform)
         if crs is not None:
             profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+
         def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
             dst.write(np.moveaxis(rgb, 2, 0), window=window)
             dst.write_mask(np.where(mask, 255, 0).astype(np.uint8), window=window)
@@ -54,5 +65,6 @@ def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
     if compression == "jpeg":
         profile["photometric"] = "YCbCr"
     with atomic_path(dst) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256):
-        cog_translate(str(src), str(tmp), profile, add_mask=True, overview_resampling="average",
-                      in_memory=False, quiet=True)
+        cog_translate(
+            str(src), str(tmp), profile, add_mask=True, overview_resampling="average", in_memory=False, quiet=True
+        )

@@ -14,8 +14,9 @@ from typing import Any
 
 from celery.exceptions import Ignore
 
-from api.db import Database, Job, JobStatus
-from api.settings import get_settings
+from core.db import Database, Job
+from core.kinds import JobStatus
+from core.settings import get_settings
 from workers.celery_app import app
 from workers.pipeline import PIPELINES, PipelineError, overall_progress, pipeline_key, run_stage, task_name
 from workers.workspace import job_workspace
@@ -45,7 +46,7 @@ class JobRecorder:
             job = s.get(Job, self.job_id)
             if job is None:
                 raise JobCancelledError(f"job {self.job_id} no longer exists")
-            if job.status == JobStatus.cancelled.value:
+            if job.status == JobStatus.cancelled:
                 return job.status
             for key, value in fields.items():
                 setattr(job, key, value)
@@ -57,7 +58,7 @@ class JobRecorder:
             return
         self._last = now
         status = self.update(progress=overall_progress(self.pipeline, self.stage, fraction), progress_detail=detail)
-        if status == JobStatus.cancelled.value:
+        if status == JobStatus.cancelled:
             raise JobCancelledError(f"job {self.job_id} was cancelled")
 
 
@@ -73,20 +74,24 @@ def execute_stage(job_id: int, stage: str, db: Database | None = None, data_dir:
             return job.status if job else "missing"
         pipeline = pipeline_key(job.kind, job.options)
     rec = JobRecorder(db, job_id, pipeline, stage)
-    if rec.update(status=JobStatus.running.value, stage=stage,
-                  progress=overall_progress(pipeline, stage, 0.0), progress_detail="") == "cancelled":
-        return "cancelled"
+    if (
+        rec.update(
+            status=JobStatus.running, stage=stage, progress=overall_progress(pipeline, stage, 0.0), progress_detail=""
+        )
+        == JobStatus.cancelled
+    ):
+        return JobStatus.cancelled
     ws = job_workspace(data_dir or get_settings().data_dir, job_id)
     try:
         report = run_stage(ws, pipeline, stage, progress=rec.progress)
     except JobCancelledError:
-        return "cancelled"
+        return JobStatus.cancelled
     except PipelineError as exc:
-        rec.update(status=JobStatus.failed.value, error=f"{stage}: {exc}")
+        rec.update(status=JobStatus.failed, error=f"{stage}: {exc}")
         raise
     except Exception as exc:
         log.exception("job %s stage %s crashed", job_id, stage)
-        rec.update(status=JobStatus.failed.value, error=f"{stage}: internal error: {type(exc).__name__}: {exc}")
+        rec.update(status=JobStatus.failed, error=f"{stage}: internal error: {type(exc).__name__}: {exc}")
         raise
     return _record_done(rec, stage, report)
 
@@ -97,8 +102,8 @@ def _record_done(rec: JobRecorder, stage: str, report: dict[str, Any]) -> str:
         assert job is not None
         job.timings = {**job.timings, stage: report.get("wall_seconds", 0.0)}
         job.progress = overall_progress(rec.pipeline, stage, 1.0)
-        if stage == PIPELINES[rec.pipeline][-1].name and job.status == JobStatus.running.value:
-            job.status, job.progress, job.progress_detail = JobStatus.succeeded.value, 100.0, "done"
+        if stage == PIPELINES[rec.pipeline][-1].name and job.status == JobStatus.running:
+            job.status, job.progress, job.progress_detail = JobStatus.succeeded, 100.0, "done"
         return job.status
 
 
@@ -106,7 +111,7 @@ def _register(stage: str) -> None:
     @app.task(name=task_name(stage), acks_late=True)
     def stage_task(job_id: int) -> str:
         status = execute_stage(job_id, stage)
-        if status not in (JobStatus.running.value, JobStatus.succeeded.value):
+        if status not in (JobStatus.running, JobStatus.succeeded):
             # Cancelled, or ended elsewhere: drop the rest of this chain, so that it never runs beside
             # the chain of a retry.
             raise Ignore()

@@ -13,11 +13,15 @@ import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from workers.algorithms.gcp import GCP_FILE_NAMES
+from workers.algorithms.sfm import GCP_FILE_NAMES
+
+if TYPE_CHECKING:  # imported where used: the API imports this module and must not load OpenCV
+    from workers.algorithms.cracks import Crack
+    from workers.algorithms.specimen import Surface
 
 
 @contextmanager
@@ -54,30 +58,46 @@ def _json_default(value: Any) -> Any:
 
 
 class JobWorkspace:
-    """The folder of one job: inputs, per-stage artifacts, reports and outputs."""
+    """The folder of one job: inputs, per-stage artifacts, reports and outputs.
+
+    Every file a job writes is named here and only here. JSON and array artifacts are read and written through
+    ``load_x()`` / ``save_x()``; their paths are private. Rasters that GDAL or a browser open by path (the
+    mosaic COG, each load step's COG and overlay) have public ``*_path()`` getters, as the tile routes need.
+    """
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
 
+    def _json(self, name: str) -> Any:
+        return read_json(self.root / name)
+
+    def _save_json(self, name: str, data: Any) -> None:
+        write_json(self.root / name, data)
+
     # -- inputs and configuration -------------------------------------------------------------
-    def config_file(self) -> Path:
-        return self.root / "config.json"
-
-    def inputs_file(self) -> Path:
-        """The frames of the job as the API (or ``fotoskhema process``) listed them."""
-        return self.root / "inputs.json"
-
-    def load_inputs(self) -> list[dict[str, Any]]:
-        return list(read_json(self.inputs_file())["frames"])
-
-    def save_inputs(self, frames: list[dict[str, Any]]) -> None:
-        write_json(self.inputs_file(), {"frames": frames})
+    def has_config(self) -> bool:
+        return (self.root / "config.json").exists()
 
     def load_config(self) -> dict[str, Any]:
-        return dict(read_json(self.config_file()))
+        return dict(self._json("config.json"))
 
     def save_config(self, config: dict[str, Any]) -> None:
-        write_json(self.config_file(), config)
+        self._save_json("config.json", config)
+
+    def load_inputs(self) -> list[dict[str, Any]]:
+        """The frames of the job as the API (or ``fotoskhema process``) listed them."""
+        return list(self._json("inputs.json")["frames"])
+
+    def save_inputs(self, frames: list[dict[str, Any]]) -> None:
+        self._save_json("inputs.json", {"frames": frames})
+
+    def input_file(self, relative: str) -> Path:
+        """Where the API stores an uploaded input of the job (photos of a photo-owning job), by relative name."""
+        return self.root / relative
+
+    def images_dir(self) -> Path:
+        """The folder of the photos a photo-owning job (calibration, rig, crack survey) was uploaded with."""
+        return self.root / "images"
 
     def gcp_dir(self) -> Path:
         """Where the job keeps its copy of its flight's GCP file."""
@@ -88,199 +108,314 @@ class JobWorkspace:
         return find_gcp_file(self.gcp_dir())
 
     # -- load_images ----------------------------------------------------------------------------
-    def frames_file(self) -> Path:
-        return self.root / "frames.json"
-
     def load_frames(self) -> list[dict[str, Any]]:
-        return list(read_json(self.frames_file())["frames"])
+        return list(self._json("frames.json")["frames"])
 
     def save_frames(self, frames: list[dict[str, Any]], rejected: list[dict[str, Any]]) -> None:
-        write_json(self.frames_file(), {"frames": frames, "rejected": rejected})
+        self._save_json("frames.json", {"frames": frames, "rejected": rejected})
 
     def load_composed_frames(self) -> dict[int, dict[str, Any]]:
         """Frames by index as ``compose_mosaic`` sees them: orthorectified frames may be cut to fewer rows."""
-        sizes = read_json(self.alignment_file()).get("frame_sizes", {})
+        sizes = self.load_alignment().get("frame_sizes", {})
         frames = {f["index"]: f for f in self.load_frames()}
         for k, (width, height) in sizes.items():
             frames[int(k)] = {**frames[int(k)], "width": width, "height": height}
         return frames
 
     def load_rejected_frames(self) -> list[dict[str, Any]]:
-        return list(read_json(self.frames_file())["rejected"])
+        return list(self._json("frames.json")["rejected"])
 
-    def working_image_file(self, index: int) -> Path:
+    def _working_image_file(self, index: int) -> Path:
         return self.root / "work" / f"frame_{index:04d}.npy"
 
     def save_working_image(self, index: int, image: np.ndarray) -> None:
-        _save_npy(self.working_image_file(index), image)
+        _save_npy(self._working_image_file(index), image)
 
     def load_working_image(self, index: int, mmap: bool = False) -> np.ndarray:
         """``(H, W, 3) uint8`` BGR; memory-mapped on request, so windows cost only what they read."""
-        return _load_npy(self.working_image_file(index), mmap)
+        return _load_npy(self._working_image_file(index), mmap)
 
     # -- detect_features ------------------------------------------------------------------------
-    def features_file(self, index: int) -> Path:
+    def _features_file(self, index: int) -> Path:
         return self.root / "features" / f"frame_{index:04d}.npz"
 
     def save_features(self, index: int, points: np.ndarray, descriptors: np.ndarray) -> None:
-        _save_npz(self.features_file(index), points=points, descriptors=descriptors)
+        _save_npz(self._features_file(index), points=points, descriptors=descriptors)
 
     def load_features(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        with np.load(self.features_file(index)) as data:
+        with np.load(self._features_file(index)) as data:
             return data["points"], data["descriptors"]
 
     # -- match_features -------------------------------------------------------------------------
-    def matches_file(self, pair: tuple[int, int]) -> Path:
+    def _matches_file(self, pair: tuple[int, int]) -> Path:
         return self.root / "matches" / f"pair_{pair[0]:04d}_{pair[1]:04d}.npz"
 
-    def save_matches(self, pair: tuple[int, int], points_i: np.ndarray, points_j: np.ndarray,
-                     index_i: np.ndarray | None = None, index_j: np.ndarray | None = None) -> None:
+    def save_matches(
+        self,
+        pair: tuple[int, int],
+        points_i: np.ndarray,
+        points_j: np.ndarray,
+        index_i: np.ndarray | None = None,
+        index_j: np.ndarray | None = None,
+    ) -> None:
         """Tie points of a pair, and (for tracks) the indices of their features in each frame."""
         indices = {} if index_i is None or index_j is None else {"index_i": index_i, "index_j": index_j}
-        _save_npz(self.matches_file(pair), points_i=points_i, points_j=points_j, **indices)
+        _save_npz(self._matches_file(pair), points_i=points_i, points_j=points_j, **indices)
 
     def load_matches(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        with np.load(self.matches_file(pair)) as data:
+        with np.load(self._matches_file(pair)) as data:
             return data["points_i"], data["points_j"]
 
     def load_match_indices(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Feature indices ``(M,) int`` of a pair's tie points in frame i and frame j."""
-        with np.load(self.matches_file(pair)) as data:
+        with np.load(self._matches_file(pair)) as data:
             return data["index_i"], data["index_j"]
 
-    def pairs_file(self) -> Path:
-        return self.root / "pairs.json"
+    def load_pairs(self) -> list[dict[str, Any]]:
+        """Every pair ``match_features`` tried: frames, matches, inliers, model, whether it was accepted."""
+        return list(self._json("pairs.json")["pairs"])
 
-    # -- align_frames, georeference -------------------------------------------------------------
-    def alignment_file(self) -> Path:
-        return self.root / "alignment.json"
+    def save_pairs(self, pairs: list[dict[str, Any]]) -> None:
+        self._save_json("pairs.json", {"pairs": pairs})
 
-    def georef_file(self) -> Path:
-        return self.root / "georef.json"
+    # -- align_frames / orthorectify_frames, georeference, compose_mosaic -------------------------
+    def load_alignment(self) -> dict[str, Any]:
+        """Frame -> plane homographies, rejected frames and tie-point residuals (``align_frames``)."""
+        return dict(self._json("alignment.json"))
+
+    def save_alignment(self, alignment: dict[str, Any]) -> None:
+        self._save_json("alignment.json", alignment)
+
+    def load_homographies(self) -> dict[int, np.ndarray]:
+        """Each aligned frame's (3, 3) homography to the mosaic plane, by frame index."""
+        return {int(k): np.array(H) for k, H in self.load_alignment()["homographies"].items()}
+
+    def load_georef(self) -> dict[str, Any]:
+        """The output grid: output pixel -> plane homography, size, CRS and pixel size (``georeference``)."""
+        return dict(self._json("georef.json"))
+
+    def save_georef(self, georef: dict[str, Any]) -> None:
+        self._save_json("georef.json", georef)
+
+    def load_coverage(self) -> dict[str, Any]:
+        """The mosaic's outline in output pixels and the share of the grid it covers (``compose_mosaic``)."""
+        return dict(self._json("coverage.json"))
+
+    def save_coverage(self, coverage: dict[str, Any]) -> None:
+        self._save_json("coverage.json", coverage)
+
+    def mosaic_scratch_path(self) -> Path:
+        """The GeoTIFF ``compose_mosaic`` writes block by block before it becomes the COG."""
+        return self.root / "mosaic.tmp.tif"
 
     # -- calibration jobs -----------------------------------------------------------------------
-    def corners_file(self) -> Path:
+    def load_corners(self) -> dict[str, Any]:
         """Chessboard corners found per photo (``detect_corners``)."""
-        return self.root / "corners.json"
+        return dict(self._json("corners.json"))
 
-    def calibration_file(self) -> Path:
+    def save_corners(self, corners: dict[str, Any]) -> None:
+        self._save_json("corners.json", corners)
+
+    def has_calibration(self) -> bool:
+        return (self.root / "calibration.json").exists()
+
+    def load_calibration(self) -> dict[str, Any]:
         """The result of a calibration or stereo job: camera/rig JSON, RMS, per-point errors."""
-        return self.root / "calibration.json"
+        return dict(self._json("calibration.json"))
+
+    def save_calibration(self, calibration: dict[str, Any]) -> None:
+        self._save_json("calibration.json", calibration)
 
     # -- adjust_bundle, orthorectify_frames ------------------------------------------------------
-    def cameras_file(self) -> Path:
+    def load_cameras(self) -> dict[str, Any]:
         """Adjusted cameras, poses and the triangulation report (``adjust_bundle``)."""
-        return self.root / "cameras.json"
+        return dict(self._json("cameras.json"))
 
-    def ortho_image_file(self, index: int) -> Path:
+    def save_cameras(self, cameras: dict[str, Any]) -> None:
+        self._save_json("cameras.json", cameras)
+
+    def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"
 
     def save_ortho_image(self, index: int, image: np.ndarray) -> None:
         """``(H, W, 3) uint8`` BGR: the working copy undistorted and cut to the ground it sees."""
-        _save_npy(self.ortho_image_file(index), image)
+        _save_npy(self._ortho_image_file(index), image)
 
     def load_compose_image(self, index: int, mmap: bool = False) -> np.ndarray:
         """The image ``compose_mosaic`` warps: the undistorted ortho frame if there is one, else the working copy."""
-        path = self.ortho_image_file(index)
+        path = self._ortho_image_file(index)
         return _load_npy(path, mmap) if path.exists() else self.load_working_image(index, mmap)
 
     # -- crack-survey jobs ------------------------------------------------------------------------
-    def orientation_file(self) -> Path:
+    def load_orientation(self) -> list[dict[str, Any]]:
         """Each photo's pose from its control points and their residuals (``orient_camera``)."""
-        return self.root / "orientation.json"
+        return list(self._json("orientation.json")["photos"])
+
+    def save_orientation(self, photos: list[dict[str, Any]]) -> None:
+        self._save_json("orientation.json", {"photos": photos})
 
     def specimen_model_file(self, name: str) -> Path:
         """The uploaded mesh of the specimen (see :func:`specimen_model_path`)."""
         return self.root / specimen_model_path(name)
 
-    def surface_file(self) -> Path:
-        """The rectification plane and the specimen's heights above it (``rectify_specimen``), ``.npz``."""
+    def _surface_file(self) -> Path:
         return self.root / "rectified" / "surface.npz"
 
-    def save_surface(self, origin: np.ndarray, axes: np.ndarray, height: np.ndarray, mm_per_px: float) -> None:
-        _save_npz(self.surface_file(), origin=origin, axes=axes, height=height, mm_per_px=np.array(mm_per_px))
+    def save_surface(self, surface: Surface) -> None:
+        """The rectification plane and the specimen's heights above it (``rectify_specimen``), without the mesh."""
+        plane = surface.frame
+        _save_npz(
+            self._surface_file(),
+            origin=plane.origin,
+            axes=plane.axes,
+            height=surface.height,
+            mm_per_px=np.array(surface.mm_per_px),
+        )
 
-    def load_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """The rectification plane (origin (3,), axes (3, 3) rows U, V, N), heights (H, W) mm, mm per px."""
-        with np.load(self.surface_file()) as data:
-            return data["origin"], data["axes"], data["height"], float(data["mm_per_px"])
+    def load_surface(self) -> Surface:
+        """The surface ``rectify_specimen`` wrote: heights and plane are all later stages need."""
+        from workers.algorithms.specimen import PlaneFrame, Surface
 
-    def rectified_file(self, stage: int) -> Path:
-        """Load stage ``stage``'s photos rectified onto the specimen: image and coverage mask (``.npz``)."""
-        return self.root / "rectified" / f"stage_{stage:02d}.npz"
+        with np.load(self._surface_file()) as data:
+            return Surface(PlaneFrame(data["origin"], data["axes"]), data["height"], float(data["mm_per_px"]))
 
-    def save_rectified(self, stage: int, image: np.ndarray, mask: np.ndarray) -> None:
-        _save_npz(self.rectified_file(stage), image=image, mask=mask)
+    def _rectified_file(self, step: int) -> Path:
+        return self.root / "rectified" / f"stage_{step:02d}.npz"
 
-    def load_rectified(self, stage: int) -> tuple[np.ndarray, np.ndarray]:
+    def save_rectified(self, step: int, image: np.ndarray, mask: np.ndarray) -> None:
+        """Load step ``step``'s photos rectified onto the specimen: image and coverage mask."""
+        _save_npz(self._rectified_file(step), image=image, mask=mask)
+
+    def load_rectified(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         """``(H, W, 3) uint8`` BGR rectified image and ``(H, W) bool`` mask of what the photos see."""
-        with np.load(self.rectified_file(stage)) as data:
+        with np.load(self._rectified_file(step)) as data:
             return data["image"], data["mask"]
 
-    def crack_mask_file(self, stage: int) -> Path:
-        return self.root / "cracks" / f"stage_{stage:02d}_mask.npy"
+    def _crack_mask_file(self, step: int) -> Path:
+        return self.root / "cracks" / f"stage_{step:02d}_mask.npy"
 
-    def save_crack_mask(self, stage: int, mask: np.ndarray) -> None:
-        _save_npy(self.crack_mask_file(stage), mask)
+    def save_crack_mask(self, step: int, mask: np.ndarray) -> None:
+        _save_npy(self._crack_mask_file(step), mask)
 
-    def load_crack_mask(self, stage: int) -> np.ndarray:
-        """``(H, W) bool`` crack pixels of the rectified image of load stage ``stage``."""
-        return _load_npy(self.crack_mask_file(stage))
+    def load_crack_mask(self, step: int) -> np.ndarray:
+        """``(H, W) bool`` crack pixels of the rectified image of load step ``step``."""
+        return _load_npy(self._crack_mask_file(step))
 
-    def measured_cracks_file(self, stage: int) -> Path:
-        """The cracks of load stage ``stage`` measured in mm (``measure_cracks``), JSON."""
-        return self.root / "cracks" / f"stage_{stage:02d}.json"
+    def save_measured_cracks(self, step: int, cracks: list[Crack], summary: dict[str, Any]) -> None:
+        """The cracks of load step ``step`` measured in mm (``measure_cracks``) and their totals."""
+        self._save_json(
+            f"cracks/stage_{step:02d}.json", {"cracks": [crack_to_json(c) for c in cracks], "summary": summary}
+        )
 
-    def comparison_file(self) -> Path:
-        """New / grown / unchanged cracks between consecutive load stages (``compare_stages``)."""
-        return self.root / "comparison.json"
+    def load_measured_cracks(self, step: int) -> tuple[list[Crack], dict[str, Any]]:
+        data = self._json(f"cracks/stage_{step:02d}.json")
+        return [crack_from_json(c) for c in data["cracks"]], dict(data["summary"])
 
-    def stage_cog_file(self, stage: int) -> Path:
-        return self.root / f"stage_{stage:02d}_rectified.tif"
+    def load_comparison(self) -> list[dict[str, Any]]:
+        """New / grown / unchanged cracks between consecutive load steps (``compare_stages``)."""
+        return list(self._json("comparison.json")["pairs"])
 
-    def stage_overlay_file(self, stage: int) -> Path:
-        return self.root / f"stage_{stage:02d}_overlay.png"
+    def save_comparison(self, pairs: list[dict[str, Any]]) -> None:
+        self._save_json("comparison.json", {"pairs": pairs})
 
-    def cracks_geojson_file(self) -> Path:
-        return self.root / "cracks.geojson"
+    def load_step_cog_path(self, step: int) -> Path:
+        """Load step ``step``'s rectified specimen as a COG (an output, read by the tile routes)."""
+        return self.root / f"stage_{step:02d}_rectified.tif"
 
-    def cracks_csv_file(self) -> Path:
-        return self.root / "cracks.csv"
+    def load_step_scratch_path(self, step: int) -> Path:
+        return self.root / f"stage_{step:02d}.tmp.tif"
+
+    def load_step_overlay_path(self, step: int) -> Path:
+        """Load step ``step``'s rectified specimen with its cracks drawn, PNG (an output)."""
+        return self.root / f"stage_{step:02d}_overlay.png"
+
+    def save_cracks_geojson(self, collection: dict[str, Any]) -> None:
+        self._save_json("cracks.geojson", collection)
+
+    def save_cracks_csv(self, text: str) -> None:
+        with atomic_path(self.root / "cracks.csv") as tmp:
+            tmp.write_text(text)
 
     # -- outputs --------------------------------------------------------------------------------
-    def mosaic_file(self) -> Path:
+    def mosaic_path(self) -> Path:
+        """The mosaic COG (an output, read by the tile routes)."""
         return self.root / "mosaic.tif"
 
-    def report_file(self) -> Path:
-        return self.root / "report.json"
+    def has_report(self) -> bool:
+        return (self.root / "report.json").exists()
 
-    def footprints_file(self) -> Path:
-        return self.root / "footprints.geojson"
+    def load_report(self) -> dict[str, Any]:
+        return dict(self._json("report.json"))
 
-    def stage_report_file(self, stage: str) -> Path:
+    def save_report(self, report: dict[str, Any]) -> None:
+        self._save_json("report.json", report)
+
+    def load_footprints(self) -> dict[str, Any]:
+        return dict(self._json("footprints.geojson"))
+
+    def save_footprints(self, collection: dict[str, Any]) -> None:
+        self._save_json("footprints.geojson", collection)
+
+    def _stage_report_file(self, stage: str) -> Path:
         return self.root / "reports" / f"{stage}.json"
 
     def save_stage_report(self, stage: str, report: dict[str, Any]) -> None:
-        write_json(self.stage_report_file(stage), report)
+        write_json(self._stage_report_file(stage), report)
 
     def load_stage_report(self, stage: str) -> dict[str, Any] | None:
-        path = self.stage_report_file(stage)
+        path = self._stage_report_file(stage)
         return dict(read_json(path)) if path.exists() else None
+
+    def forget_stage_report(self, stage: str) -> None:
+        """Make pipeline stage ``stage`` run again on the next delivery (its report marks it done)."""
+        self._stage_report_file(stage).unlink(missing_ok=True)
 
     def outputs(self) -> dict[str, Path]:
         """Downloadable outputs that exist, by public name."""
-        named = {
-            "mosaic.tif": self.mosaic_file(),
-            "report.json": self.report_file(),
-            "footprints.geojson": self.footprints_file(),
-            "calibration.json": self.calibration_file(),
-            "cameras.json": self.cameras_file(),
-            "cracks.geojson": self.cracks_geojson_file(),
-            "cracks.csv": self.cracks_csv_file(),
-        }
+        names = [
+            "mosaic.tif",
+            "report.json",
+            "footprints.geojson",
+            "calibration.json",
+            "cameras.json",
+            "cracks.geojson",
+            "cracks.csv",
+        ]
+        named = {name: self.root / name for name in names}
         for path in sorted([*self.root.glob("stage_*_rectified.tif"), *self.root.glob("stage_*_overlay.png")]):
             named[path.name] = path
         return {name: path for name, path in named.items() if path.exists()}
+
+
+def crack_to_json(crack: Crack) -> dict[str, Any]:
+    return {
+        "paths_mm": [p.tolist() for p in crack.paths_mm],
+        "length_mm": crack.length_mm,
+        "mean_width_mm": crack.mean_width_mm,
+        "max_width_mm": crack.max_width_mm,
+        "orientation_deg": crack.orientation_deg,
+        "endpoints_mm": crack.endpoints_mm.tolist(),
+        "bbox_mm": list(crack.bbox_mm),
+    }
+
+
+def crack_from_json(data: dict[str, Any]) -> Crack:
+    from workers.algorithms.cracks import Crack
+
+    return Crack(
+        paths_mm=tuple(np.array(p, dtype=np.float64).reshape(-1, 2) for p in data["paths_mm"]),
+        length_mm=float(data["length_mm"]),
+        mean_width_mm=float(data["mean_width_mm"]),
+        max_width_mm=float(data["max_width_mm"]),
+        orientation_deg=float(data["orientation_deg"]),
+        endpoints_mm=np.array(data["endpoints_mm"], dtype=np.float64).reshape(-1, 2),
+        bbox_mm=(
+            float(data["bbox_mm"][0]),
+            float(data["bbox_mm"][1]),
+            float(data["bbox_mm"][2]),
+            float(data["bbox_mm"][3]),
+        ),
+    )
 
 
 def _save_npy(path: Path, array: np.ndarray) -> None:

@@ -9,25 +9,31 @@ from api.deps import DbDep, QueueDep, SettingsDep
 from api.models import JobOut, JobResultOut, MarksUpdate, MeasureRequest
 from api.photo_jobs import parse_options
 from api.stereo_service import measure_with_rig
+from core.kinds import JobKind
 
 router = APIRouter(prefix="/api", tags=["calibration"])
 
-OPTIONS_HELP = "JSON object of options (see CalibrationConfig / StereoCalibrationConfig), e.g. {\"pattern\": [9, 6]}"
+OPTIONS_HELP = 'JSON object of options (see CalibrationConfig / StereoCalibrationConfig), e.g. {"pattern": [9, 6]}'
 
 
 @router.post("/calibrations", status_code=202, response_model=JobOut)
-async def create_calibration(db: DbDep, settings: SettingsDep, queue: QueueDep,
-                             files: list[UploadFile] = File(default=[], description="photos of the board"),
-                             options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
+async def create_calibration(
+    db: DbDep,
+    settings: SettingsDep,
+    queue: QueueDep,
+    files: list[UploadFile] = File(default=[], description="photos of the board"),
+    options: str = Form("", description=OPTIONS_HELP),
+) -> JobOut:
     """Calibrate one camera: chessboard photos (corners found automatically), hand marks, or plumb lines."""
-    return await service.create_calibration(db, settings, queue, "calibration", {"": files},
-                                            parse_options(options))
+    return await service.create_calibration(
+        db, settings, queue, JobKind.calibration, {"": files}, parse_options(options)
+    )
 
 
 @router.get("/calibrations/{job_id}", response_model=JobResultOut)
 def get_calibration(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
     """The job and, once solved, the camera JSON, RMS, per-point reprojection errors and parameter sigmas."""
-    return service.get_calibration(db, settings, job_id, "calibration")
+    return service.get_calibration(db, settings, job_id, JobKind.calibration)
 
 
 @router.put("/calibrations/{job_id}/markers", status_code=202, response_model=JobOut)
@@ -37,18 +43,23 @@ def replace_markers(job_id: int, body: MarksUpdate, db: DbDep, settings: Setting
 
 
 @router.post("/stereo-rigs", status_code=202, response_model=JobOut)
-async def create_stereo_rig(db: DbDep, settings: SettingsDep, queue: QueueDep,
-                            left: list[UploadFile] = File(..., description="left photos, in pair order"),
-                            right: list[UploadFile] = File(..., description="right photos, same order"),
-                            options: str = Form("", description=OPTIONS_HELP)) -> JobOut:
+async def create_stereo_rig(
+    db: DbDep,
+    settings: SettingsDep,
+    queue: QueueDep,
+    left: list[UploadFile] = File(..., description="left photos, in pair order"),
+    right: list[UploadFile] = File(..., description="right photos, same order"),
+    options: str = Form("", description=OPTIONS_HELP),
+) -> JobOut:
     """Calibrate a two-camera rig from paired chessboard photos: rotation, baseline, RMS."""
-    return await service.create_calibration(db, settings, queue, "stereo_calibration",
-                                            {"left": left, "right": right}, parse_options(options))
+    return await service.create_calibration(
+        db, settings, queue, JobKind.stereo_calibration, {"left": left, "right": right}, parse_options(options)
+    )
 
 
 @router.get("/stereo-rigs/{job_id}", response_model=JobResultOut)
 def get_stereo_rig(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
-    return service.get_calibration(db, settings, job_id, "stereo_calibration")
+    return service.get_calibration(db, settings, job_id, JobKind.stereo_calibration)
 
 
 @router.post("/stereo-rigs/{job_id}/measure")

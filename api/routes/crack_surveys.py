@@ -11,18 +11,24 @@ from api.photo_jobs import parse_options
 
 router = APIRouter(prefix="/api", tags=["crack survey"])
 
-OPTIONS_HELP = ("JSON object (see CrackSurveyConfig): camera (camera JSON) or calibration_job (id), specimen "
-                "{width_mm, height_mm} for a plate or {mesh: file name, plane: null or 3 points} for a mesh, "
-                "stages [{label, load, photos: [{image, control_points: [{pixel: [x, y], model: [X, Y, Z]}]}]}], "
-                "mm_per_px")
+OPTIONS_HELP = (
+    "JSON object (see CrackSurveyConfig): camera (camera JSON) or calibration_job (id), specimen "
+    "{width_mm, height_mm} for a plate or {mesh: file name, plane: null or 3 points} for a mesh, "
+    "stages [{label, load, photos: [{image, control_points: [{pixel: [x, y], model: [X, Y, Z]}]}]}], "
+    "mm_per_px"
+)
 MODEL_HELP = "the specimen's triangle mesh in mm (OBJ, PLY or STL) when options.specimen.mesh names it"
 
 
 @router.post("/crack-surveys", status_code=202, response_model=JobOut)
-async def create_crack_survey(db: DbDep, settings: SettingsDep, queue: QueueDep,
-                              files: list[UploadFile] = File(default=[], description="the photos the stages name"),
-                              options: str = Form("", description=OPTIONS_HELP),
-                              model: UploadFile | None = File(default=None, description=MODEL_HELP)) -> JobOut:
+async def create_crack_survey(
+    db: DbDep,
+    settings: SettingsDep,
+    queue: QueueDep,
+    files: list[UploadFile] = File(default=[], description="the photos the stages name"),
+    options: str = Form("", description=OPTIONS_HELP),
+    model: UploadFile | None = File(default=None, description=MODEL_HELP),
+) -> JobOut:
     """Measure the cracks of a specimen at each load stage and compare consecutive stages."""
     return await service.create_crack_survey(db, settings, queue, files, parse_options(options), model)
 

@@ -5,26 +5,39 @@ from __future__ import annotations
 from fastapi import APIRouter, File, UploadFile
 from sqlalchemy import func, select
 
-from api.db import Flight, Image
 from api.deps import DbDep, SettingsDep
 from api.errors import NotFoundError
 from api.gcp_service import MAX_GCP_BYTES, store_gcps
 from api.models import FlightCreate, FlightDetail, FlightOut, ImageOut, UploadResult
 from api.uploads import display_name, store_uploads
+from core.db import Flight, Image
 
 router = APIRouter(prefix="/api/flights", tags=["flights"])
 
 
 def image_out(image: Image) -> ImageOut:
     meta = image.meta or {}
-    return ImageOut(id=image.id, seq=image.seq, filename=image.filename, stored_name=image.stored_name,
-                    size_bytes=image.size_bytes, width=image.width, height=image.height, gps=meta.get("gps"),
-                    **{k: meta.get(k) for k in ("focal_length_mm", "focal_length_35mm", "yaw", "pitch", "roll")})
+    return ImageOut(
+        id=image.id,
+        seq=image.seq,
+        filename=image.filename,
+        stored_name=image.stored_name,
+        size_bytes=image.size_bytes,
+        width=image.width,
+        height=image.height,
+        gps=meta.get("gps"),
+        **{k: meta.get(k) for k in ("focal_length_mm", "focal_length_35mm", "yaw", "pitch", "roll")},
+    )
 
 
 def flight_out(flight: Flight, image_count: int) -> FlightOut:
-    return FlightOut(id=flight.id, name=flight.name, description=flight.description,
-                     created_at=flight.created_at, image_count=image_count)
+    return FlightOut(
+        id=flight.id,
+        name=flight.name,
+        description=flight.description,
+        created_at=flight.created_at,
+        image_count=image_count,
+    )
 
 
 @router.post("", status_code=201, response_model=FlightOut)
@@ -40,8 +53,11 @@ def create_flight(body: FlightCreate, db: DbDep) -> FlightOut:
 def list_flights(db: DbDep) -> list[FlightOut]:
     with db.session() as s:
         counts = select(Image.flight_id, func.count().label("n")).group_by(Image.flight_id).subquery()
-        rows = s.execute(select(Flight, func.coalesce(counts.c.n, 0)).outerjoin(counts, counts.c.flight_id == Flight.id)
-                         .order_by(Flight.id.desc()))
+        rows = s.execute(
+            select(Flight, func.coalesce(counts.c.n, 0))
+            .outerjoin(counts, counts.c.flight_id == Flight.id)
+            .order_by(Flight.id.desc())
+        )
         return [flight_out(f, n) for f, n in rows]
 
 
@@ -56,17 +72,24 @@ def get_flight(flight_id: int, db: DbDep) -> FlightDetail:
 
 
 @router.post("/{flight_id}/images", status_code=201, response_model=UploadResult)
-async def upload_images(flight_id: int, db: DbDep, settings: SettingsDep,
-                        files: list[UploadFile] = File(..., description="one or more photos")) -> UploadResult:
+async def upload_images(
+    flight_id: int,
+    db: DbDep,
+    settings: SettingsDep,
+    files: list[UploadFile] = File(..., description="one or more photos"),
+) -> UploadResult:
     """Validate and store photos; answers every file's metadata, or a 4xx naming the bad file."""
     images = await store_uploads(db, settings, flight_id, files)
     return UploadResult(images=[image_out(i) for i in images])
 
 
 @router.put("/{flight_id}/gcps")
-async def upload_gcps(flight_id: int, db: DbDep, settings: SettingsDep,
-                      file: UploadFile = File(..., description="gcp_list.txt (ODM) or ground_control_points.json "
-                                                               "(OpenSfM)")) -> dict:
+async def upload_gcps(
+    flight_id: int,
+    db: DbDep,
+    settings: SettingsDep,
+    file: UploadFile = File(..., description="gcp_list.txt (ODM) or ground_control_points.json (OpenSfM)"),
+) -> dict:
     """Set the flight's ground control points, used by ``mode: "ortho"`` jobs; replaces earlier ones."""
     content = await file.read(MAX_GCP_BYTES + 1)
     return store_gcps(db, settings.data_dir, flight_id, display_name(file.filename), content)

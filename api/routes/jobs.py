@@ -9,17 +9,21 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, StreamingResponse
 
 from api import job_service
-from api.db import JobStatus
 from api.deps import DbDep, QueueDep, SettingsDep
 from api.errors import NotFoundError
 from api.models import JobCreate, JobOut, OutputOut, OutputsOut
+from core.kinds import JobStatus
 from workers.workspace import job_workspace
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 
-MEDIA_TYPES = {".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
-               ".json": "application/json", ".geojson": "application/geo+json", ".csv": "text/csv",
-               ".png": "image/png"}
+MEDIA_TYPES = {
+    ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
+    ".json": "application/json",
+    ".geojson": "application/geo+json",
+    ".csv": "text/csv",
+    ".png": "image/png",
+}
 
 
 @router.post("", status_code=202, response_model=JobOut)
@@ -77,10 +81,16 @@ async def job_events(job_id: int, request: Request, db: DbDep, settings: Setting
 def list_outputs(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> OutputsOut:
     job_service.get_job(db, job_id)
     outputs = job_workspace(settings.data_dir, job_id).outputs()
-    return OutputsOut(outputs=[
-        OutputOut(name=name, size_bytes=path.stat().st_size,
-                  url=str(request.url_for("download_output", job_id=job_id, name=name)))
-        for name, path in outputs.items()])
+    return OutputsOut(
+        outputs=[
+            OutputOut(
+                name=name,
+                size_bytes=path.stat().st_size,
+                url=str(request.url_for("download_output", job_id=job_id, name=name)),
+            )
+            for name, path in outputs.items()
+        ]
+    )
 
 
 @router.get("/{job_id}/outputs/{name}", name="download_output")
@@ -90,5 +100,6 @@ def download_output(job_id: int, name: str, db: DbDep, settings: SettingsDep) ->
     path = job_workspace(settings.data_dir, job_id).outputs().get(name)
     if path is None:
         raise NotFoundError(f"job {job_id} has no output named {name!r}")
-    return FileResponse(path, media_type=MEDIA_TYPES.get(path.suffix, "application/octet-stream"),
-                        filename=f"job{job_id}_{name}")
+    return FileResponse(
+        path, media_type=MEDIA_TYPES.get(path.suffix, "application/octet-stream"), filename=f"job{job_id}_{name}"
+    )

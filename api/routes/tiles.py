@@ -1,7 +1,9 @@
 """XYZ tiles and TileJSON of a job's rasters, read with rio-tiler from that job's own COGs only.
 
-Two rasters have tiles: a mosaic job's mosaic, and each load stage's rectified specimen of a crack survey.
-Both routes name a job (and a stage), never a path; they share the tile and TileJSON code below.
+Two rasters have tiles: a mosaic job's mosaic, and each load step's rectified specimen of a crack survey (a
+load step: one entry of the survey's ``options.stages``, so named apart from the pipeline's stages; the former
+``/tiles/{job}/stages/{stage}/...`` paths still answer the same, hidden from the schema). Both routes name a job
+(and a load step), never a path; they share the tile and TileJSON code below.
 
 A georeferenced raster is served in WebMercatorQuad. A raster without map coordinates (a mosaic without
 GPS: no CRS; a specimen: a local engineering CRS in mm, neither geographic nor projected) is served in
@@ -25,10 +27,10 @@ from rio_tiler.io import ImageReader, Reader
 from rio_tiler.models import ImageData
 
 from api import job_service
-from api.crack_survey_service import KIND as CRACK_SURVEY
 from api.deps import DbDep, SettingsDep
 from api.errors import ConflictError, NotFoundError
 from api.photo_jobs import job_of_kind
+from core.kinds import JobKind
 from workers.workspace import job_workspace
 
 router = APIRouter(prefix="/tiles", tags=["tiles"])
@@ -39,27 +41,29 @@ PNG: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {}}}}  # 
 
 # -- Which COG a route serves --------------------------------------------------------------------
 
+
 def _mosaic_cog(db: Any, settings: Any, job_id: int) -> Path:
     job = job_service.get_job(db, job_id)  # 404 for an unknown job
-    path = job_workspace(settings.data_dir, job_id).mosaic_file()
+    path = job_workspace(settings.data_dir, job_id).mosaic_path()
     if not path.exists():
         raise ConflictError(f"job {job_id} has no mosaic yet (status: {job.status})")
     return path
 
 
-def _stage_cog(db: Any, settings: Any, job_id: int, stage: int) -> Path:
-    job = job_of_kind(db, job_id, (CRACK_SURVEY,), "crack survey")  # 404 for any other job
+def _load_step_cog(db: Any, settings: Any, job_id: int, step: int) -> Path:
+    job = job_of_kind(db, job_id, (JobKind.crack_survey,), "crack survey")  # 404 for any other job
     ws = job_workspace(settings.data_dir, job_id)
-    count = len(ws.load_config().get("stages", [])) if ws.config_file().exists() else 0
-    if not 0 <= stage < count:
-        raise NotFoundError(f"crack survey {job_id} has no load stage {stage} (it has {count})")
-    path = ws.stage_cog_file(stage)
+    count = len(ws.load_config().get("stages", [])) if ws.has_config() else 0  # options.stages
+    if not 0 <= step < count:
+        raise NotFoundError(f"crack survey {job_id} has no load stage {step} (it has {count})")
+    path = ws.load_step_cog_path(step)
     if not path.exists():
-        raise ConflictError(f"load stage {stage} of crack survey {job_id} is not rectified yet (status: {job.status})")
+        raise ConflictError(f"load stage {step} of crack survey {job_id} is not rectified yet (status: {job.status})")
     return path
 
 
 # -- Routes --------------------------------------------------------------------------------------
+
 
 @router.get("/{job_id}/{z}/{x}/{y}.png", responses=PNG)
 def tile(job_id: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
@@ -74,24 +78,40 @@ def tilejson(job_id: int, request: Request, db: DbDep, settings: SettingsDep) ->
     return _tilejson(path, request.url_for("tile", job_id=job_id, z=0, x=0, y=0), f"job {job_id} mosaic")
 
 
-@router.get("/{job_id}/stages/{stage}/{z}/{x}/{y}.png", responses=PNG)
-def stage_tile(job_id: int, stage: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
-    """A 256 px PNG tile of load stage ``stage`` (0-based) of a crack survey, rectified onto the specimen."""
-    path = _stage_cog(db, settings, job_id, stage)
-    return _tile_response(path, z, x, y, f"load stage {stage} of crack survey {job_id}")
+@router.get("/{job_id}/load-steps/{step}/{z}/{x}/{y}.png", responses=PNG)
+def load_step_tile(job_id: int, step: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
+    """A 256 px PNG tile of load step ``step`` (0-based, the order of ``options.stages``) of a crack survey,
+    rectified onto the specimen."""
+    path = _load_step_cog(db, settings, job_id, step)
+    return _tile_response(path, z, x, y, f"load stage {step} of crack survey {job_id}")
 
 
-@router.get("/{job_id}/stages/{stage}/tilejson.json")
-def stage_tilejson(job_id: int, stage: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
-    """TileJSON 2.2.0 of one load stage's rectified specimen, a local pixel grid (``georeferenced: false``):
+@router.get("/{job_id}/load-steps/{step}/tilejson.json")
+def load_step_tilejson(job_id: int, step: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    """TileJSON 2.2.0 of one load step's rectified specimen, a local pixel grid (``georeferenced: false``):
     its pixel (col, row) spans [col, col + 1] x [row, row + 1] and is centred on the specimen point
     (X, Y) = (col, row) * mm_per_px, mm (``report.json``)."""
-    path = _stage_cog(db, settings, job_id, stage)
-    template = request.url_for("stage_tile", job_id=job_id, stage=stage, z=0, x=0, y=0)
-    return _tilejson(path, template, f"crack survey {job_id} stage {stage}")
+    path = _load_step_cog(db, settings, job_id, step)
+    template = request.url_for("load_step_tile", job_id=job_id, step=step, z=0, x=0, y=0)
+    return _tilejson(path, template, f"crack survey {job_id} stage {step}")
+
+
+# The former paths of the two routes above (a load step was called a stage), kept for links and clients made
+# before the rename and hidden from the schema; their TileJSON points at the load-steps tiles.
+
+
+@router.get("/{job_id}/stages/{stage}/{z}/{x}/{y}.png", include_in_schema=False)
+def stage_tile(job_id: int, stage: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
+    return load_step_tile(job_id, stage, z, x, y, db, settings)
+
+
+@router.get("/{job_id}/stages/{stage}/tilejson.json", include_in_schema=False)
+def stage_tilejson(job_id: int, stage: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    return load_step_tilejson(job_id, stage, request, db, settings)
 
 
 # -- Reading a COG -------------------------------------------------------------------------------
+
 
 def _open(path: Path) -> Reader:
     """rio-tiler's reader: on the Earth for a geographic or projected CRS, the pixel grid otherwise."""
@@ -143,8 +163,14 @@ def _tilejson(path: Path, tile_zero: Any, name: str) -> dict[str, Any]:
             west, south, east, north = 0.0, -float(reader.height), float(reader.width), 0.0
         minzoom, maxzoom = int(reader.minzoom), int(reader.maxzoom)
     return {
-        "tilejson": "2.2.0", "name": name, "scheme": "xyz", "tiles": [template],
-        "bounds": [west, south, east, north], "minzoom": minzoom, "maxzoom": maxzoom,
+        "tilejson": "2.2.0",
+        "name": name,
+        "scheme": "xyz",
+        "tiles": [template],
+        "bounds": [west, south, east, north],
+        "minzoom": minzoom,
+        "maxzoom": maxzoom,
         "center": [(west + east) / 2, (south + north) / 2, max(minzoom, maxzoom - 2)],
-        "georeferenced": georeferenced, "tile_size": TILE_SIZE,
+        "georeferenced": georeferenced,
+        "tile_size": TILE_SIZE,
     }

@@ -22,10 +22,13 @@ def index(settings: SettingsDep) -> FileResponse:
 @router.get("/docs", include_in_schema=False)
 def docs(request: Request) -> HTMLResponse:
     """Swagger UI from the npm package installed at set-up (no CDN: the machines are offline)."""
-    return get_swagger_ui_html(openapi_url=str(request.app.openapi_url), title="Fotoskhema API",
-                               swagger_js_url="/vendor/swagger-ui/swagger-ui-bundle.js",
-                               swagger_css_url="/vendor/swagger-ui/swagger-ui.css",
-                               swagger_favicon_url="/static/favicon.svg")
+    return get_swagger_ui_html(
+        openapi_url=str(request.app.openapi_url),
+        title="Fotoskhema API",
+        swagger_js_url="/vendor/swagger-ui/swagger-ui-bundle.js",
+        swagger_css_url="/vendor/swagger-ui/swagger-ui.css",
+        swagger_favicon_url="/static/favicon.svg",
+    )
 
 
 @router.get("/api/health", tags=["service"])

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from api.db import Database
+from core.db import Database
 from tests.conftest import RecordingQueue, shared_data
-from workers.algorithms.camera import Camera
+from workers.algorithms.geometry import Camera
 from workers.tasks import execute_stage
 
 
@@ -62,9 +62,12 @@ def test_chessboard_calibration_then_corrected_marks(client: TestClient, api_set
     view = result["views"][3]
     points = [p["image_xy"] for p in view["points"]]
     points[20] = [points[20][0] + 6.0, points[20][1]]
-    marks = {"markers": [{"image": view["image"], "image_points": points,
-                          "board_points": [p["board_xyz"] for p in view["points"]]},
-                         {"image": result["views"][0]["image"], "remove": True}]}
+    marks = {
+        "markers": [
+            {"image": view["image"], "image_points": points, "board_points": [p["board_xyz"] for p in view["points"]]},
+            {"image": result["views"][0]["image"], "remove": True},
+        ]
+    }
     corners_written = (api_settings.data_dir / "jobs" / str(job["id"]) / "corners.json").stat().st_mtime_ns
     again = client.put(f"/api/calibrations/{job['id']}/markers", json=marks)
     assert again.status_code == 202 and again.json()["status"] == "queued"
@@ -82,12 +85,15 @@ def test_chessboard_calibration_then_corrected_marks(client: TestClient, api_set
 def test_stereo_rig_measures_the_board_it_was_calibrated_on(client: TestClient, api_settings) -> None:
     left, right = chessboards("left"), chessboards("right")
     options = json.dumps({"pattern": [9, 6], "square_mm": 25})
-    response = client.post("/api/stereo-rigs", files=upload(left, "left") + upload(right, "right"),
-                           data={"options": options})
+    response = client.post(
+        "/api/stereo-rigs", files=upload(left, "left") + upload(right, "right"), data={"options": options}
+    )
     assert response.status_code == 202, response.text
     job = response.json()
-    assert client.post(f"/api/stereo-rigs/{job['id']}/measure", json={"left": [[1, 1]], "right": [[1, 1]]}
-                       ).status_code == 409  # not calibrated yet
+    assert (
+        client.post(f"/api/stereo-rigs/{job['id']}/measure", json={"left": [[1, 1]], "right": [[1, 1]]}).status_code
+        == 409
+    )  # not calibrated yet
     assert run_job(client, api_settings, job)["status"] == "succeeded"
     result = client.get(f"/api/stereo-rigs/{job['id']}").json()["result"]
     assert result["rms_px"] < 0.6 and 50 < result["baseline_mm"] < 200
@@ -96,8 +102,9 @@ def test_stereo_rig_measures_the_board_it_was_calibrated_on(client: TestClient, 
     pair = result["pairs"][2]
     lpx, rpx = np.array(corners[pair["left"]]["points"]), np.array(corners[pair["right"]]["points"])
     picks = [0, 8, 45]
-    measured = client.post(f"/api/stereo-rigs/{job['id']}/measure",
-                           json={"left": lpx[picks].tolist(), "right": rpx[picks].tolist()})
+    measured = client.post(
+        f"/api/stereo-rigs/{job['id']}/measure", json={"left": lpx[picks].tolist(), "right": rpx[picks].tolist()}
+    )
     assert measured.status_code == 200, measured.text
     distances = {(d["from"], d["to"]): d for d in measured.json()["distances"]}
     assert abs(distances[(0, 1)]["distance"] - 200.0) < 2.0 and abs(distances[(0, 2)]["distance"] - 125.0) < 1.5
@@ -106,8 +113,12 @@ def test_stereo_rig_measures_the_board_it_was_calibrated_on(client: TestClient, 
     assert bad.status_code == 422 and "pairs" in bad.json()["detail"]
     outside = client.post(f"/api/stereo-rigs/{job['id']}/measure", json={"left": [[900, 1]], "right": [[1, 1]]})
     assert outside.status_code == 422 and "outside" in outside.json()["detail"]
-    assert client.post(f"/api/stereo-rigs/{job['id'] + 100}/measure",
-                       json={"left": [[1, 1]], "right": [[1, 1]]}).status_code == 404
+    assert (
+        client.post(
+            f"/api/stereo-rigs/{job['id'] + 100}/measure", json={"left": [[1, 1]], "right": [[1, 1]]}
+        ).status_code
+        == 404
+    )
 
 
 def test_plumb_line_job_recovers_planted_distortion(client: TestClient, api_settings) -> None:
@@ -117,8 +128,13 @@ def test_plumb_line_job_recovers_planted_distortion(client: TestClient, api_sett
         along = np.linspace(-0.5, 0.5, 25)
         for ideal in (np.column_stack([along, np.full(25, offset)]), np.column_stack([np.full(25, offset), along])):
             lines.append(truth.normalised_to_pixel(ideal).tolist())
-    options = {"method": "plumb_line", "lines": lines, "image_size": [800, 600], "terms": ["k1", "k2"],
-               "camera": truth.replace(k1=0.0, k2=0.0).to_json()}
+    options = {
+        "method": "plumb_line",
+        "lines": lines,
+        "image_size": [800, 600],
+        "terms": ["k1", "k2"],
+        "camera": truth.replace(k1=0.0, k2=0.0).to_json(),
+    }
     response = client.post("/api/calibrations", data={"options": json.dumps(options)})
     assert response.status_code == 202, response.text
     assert response.json()["stages"] == ["fit_plumb_line"]
@@ -137,21 +153,44 @@ def test_photos_without_a_board_fail_the_job_saying_which(client: TestClient, ap
     assert "wall1.png: no 9x6 chessboard" in record["error"]
 
 
-@pytest.mark.parametrize(("data", "count", "fragment"), [
-    ({}, 2, "at least 3 photos"),
-    ({"options": "{not json"}, 3, "not valid JSON"),
-    ({"options": "[1, 2]"}, 3, "JSON object"),
-    ({"options": json.dumps({"pattern": [1, 6]})}, 3, "options.pattern"),
-    ({"options": json.dumps({"convention": "fisheye"})}, 3, "options.convention"),
-    ({"options": json.dumps({"markers": [{"image": "other.png", "image_points": [[1, 2]] * 6,
-                                          "board_points": [[0, 0, 0]] * 6}]})}, 3, "no photo named"),
-    ({"options": json.dumps({"markers": [{"image": "wall0.png", "image_points": [[1, 2]] * 6,
-                                          "board_points": [[0, 0, 0]] * 5}]})}, 3, "6 image points but 5"),
-    ({"options": json.dumps({"method": "plumb_line", "lines": [[[0, 0], [1, 1]]]})}, 0, "at least 2 lines"),
-])
-def test_bad_calibration_requests_are_422_and_store_nothing(client: TestClient, api_settings, tmp_path: Path,
-                                                             recording_queue: RecordingQueue, data: dict, count: int,
-                                                             fragment: str) -> None:
+@pytest.mark.parametrize(
+    ("data", "count", "fragment"),
+    [
+        ({}, 2, "at least 3 photos"),
+        ({"options": "{not json"}, 3, "not valid JSON"),
+        ({"options": "[1, 2]"}, 3, "JSON object"),
+        ({"options": json.dumps({"pattern": [1, 6]})}, 3, "options.pattern"),
+        ({"options": json.dumps({"convention": "fisheye"})}, 3, "options.convention"),
+        (
+            {
+                "options": json.dumps(
+                    {"markers": [{"image": "other.png", "image_points": [[1, 2]] * 6, "board_points": [[0, 0, 0]] * 6}]}
+                )
+            },
+            3,
+            "no photo named",
+        ),
+        (
+            {
+                "options": json.dumps(
+                    {"markers": [{"image": "wall0.png", "image_points": [[1, 2]] * 6, "board_points": [[0, 0, 0]] * 5}]}
+                )
+            },
+            3,
+            "6 image points but 5",
+        ),
+        ({"options": json.dumps({"method": "plumb_line", "lines": [[[0, 0], [1, 1]]]})}, 0, "at least 2 lines"),
+    ],
+)
+def test_bad_calibration_requests_are_422_and_store_nothing(
+    client: TestClient,
+    api_settings,
+    tmp_path: Path,
+    recording_queue: RecordingQueue,
+    data: dict,
+    count: int,
+    fragment: str,
+) -> None:
     files = upload(blank_photos(tmp_path, count)) if count else None
     response = client.post("/api/calibrations", files=files, data=data)
     assert response.status_code == 422 and fragment in response.json()["detail"], response.text

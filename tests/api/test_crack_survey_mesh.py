@@ -24,12 +24,12 @@ RADIUS_MM = 120.0  # the arc of 200 mm spans 95 degrees, bulges 38 mm; cracks pr
 
 @pytest.fixture(scope="module")
 def panel(tmp_path_factory: pytest.TempPathFactory) -> CrackSurveyScene:
-    return make_crack_survey(tmp_path_factory.mktemp("panel"), [(45.0, 0.0), (35.0, 30.0)], seed=3,
-                             panel_radius_mm=RADIUS_MM)
+    return make_crack_survey(
+        tmp_path_factory.mktemp("panel"), [(45.0, 0.0), (35.0, 30.0)], seed=3, panel_radius_mm=RADIUS_MM
+    )
 
 
-def post(client: TestClient, scene: CrackSurveyScene, options: dict, views: tuple[int, ...],
-         model: Path | None) -> Any:
+def post(client: TestClient, scene: CrackSurveyScene, options: dict, views: tuple[int, ...], model: Path | None) -> Any:
     files = upload(scene.paths(views))
     if model is not None:
         files.append(("model", (model.name, model.read_bytes(), "application/octet-stream")))
@@ -42,8 +42,9 @@ def model_distances(feature: dict, truth_model: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("views", [(0,), (0, 1)], ids=["one-view", "two-views"])
-def test_cracks_on_a_curved_panel_measured_along_its_surface(client: TestClient, api_settings,
-                                                             panel: CrackSurveyScene, views: tuple[int, ...]) -> None:
+def test_cracks_on_a_curved_panel_measured_along_its_surface(
+    client: TestClient, api_settings, panel: CrackSurveyScene, views: tuple[int, ...]
+) -> None:
     response = post(client, panel, panel.options(MM_PER_PX, views), views, panel.mesh_path)
     assert response.status_code == 202, response.text
     record = run_job(client, api_settings, response.json())
@@ -59,8 +60,11 @@ def test_cracks_on_a_curved_panel_measured_along_its_surface(client: TestClient,
     assert isinstance(specimen, CurvedPanel)
     for s, truth in enumerate(panel.stages):
         stage = result["stages"][s]
-        found = [f for f in geojson["features"] if f["properties"]["stage"] == s
-                 and f["properties"]["length_mm"] > 5 * MM_PER_PX]
+        found = [
+            f
+            for f in geojson["features"]
+            if f["properties"]["stage"] == s and f["properties"]["length_mm"] > 5 * MM_PER_PX
+        ]
         assert len(found) == len(truth), [round(f["properties"]["length_mm"], 1) for f in found]
         total_error = stage["total_length_mm"] / sum(c.length_mm for c in truth) - 1
         assert abs(total_error) < 0.05
@@ -76,22 +80,39 @@ def test_cracks_on_a_curved_panel_measured_along_its_surface(client: TestClient,
             assert abs(width_errors[-1]) < 0.15, (best["properties"]["mean_width_mm"], crack.width_mm)
             expected = "first" if s == 0 else crack.status
             assert best["properties"]["status"] == expected
-        print(f"panel {views} stage {s + 1}: {len(found)} cracks, total {total_error:+.1%}, "
-              f"worst crack {max(errors, key=abs):+.1%}, mean width {np.mean(width_errors):+.2f} mm off, "
-              f"worst {max(width_errors, key=abs):+.2f} mm")  # the figures, with pytest -s
+        print(
+            f"panel {views} stage {s + 1}: {len(found)} cracks, total {total_error:+.1%}, "
+            f"worst crack {max(errors, key=abs):+.1%}, mean width {np.mean(width_errors):+.2f} mm off, "
+            f"worst {max(width_errors, key=abs):+.2f} mm"
+        )  # the figures, with pytest -s
     assert (result["comparisons"][0]["new"], result["comparisons"][0]["grown"]) == (2, 1)
 
 
-def test_a_survey_takes_its_camera_from_a_calibration_job(client: TestClient, api_settings,
-                                                          panel: CrackSurveyScene) -> None:
+def test_a_survey_takes_its_camera_from_a_calibration_job(
+    client: TestClient, api_settings, panel: CrackSurveyScene
+) -> None:
     # a plumb-line calibration of the panel's camera from straight lines through it (no photos needed)
     truth = panel.camera
     along = np.linspace(-0.4, 0.4, 25)
-    lines = [truth.normalised_to_pixel(line).tolist() for offset in np.linspace(-0.3, 0.3, 5)
-             for line in (np.column_stack([along, np.full(25, offset)]), np.column_stack([np.full(25, offset), along]))]
-    calibration = client.post("/api/calibrations", data={"options": json.dumps({
-        "method": "plumb_line", "lines": lines, "image_size": [truth.width, truth.height], "terms": ["k1", "k2"],
-        "camera": truth.replace(k1=0.0, k2=0.0, t1=0.0, t2=0.0).to_json()})})
+    lines = [
+        truth.normalised_to_pixel(line).tolist()
+        for offset in np.linspace(-0.3, 0.3, 5)
+        for line in (np.column_stack([along, np.full(25, offset)]), np.column_stack([np.full(25, offset), along]))
+    ]
+    calibration = client.post(
+        "/api/calibrations",
+        data={
+            "options": json.dumps(
+                {
+                    "method": "plumb_line",
+                    "lines": lines,
+                    "image_size": [truth.width, truth.height],
+                    "terms": ["k1", "k2"],
+                    "camera": truth.replace(k1=0.0, k2=0.0, t1=0.0, t2=0.0).to_json(),
+                }
+            )
+        },
+    )
     assert calibration.status_code == 202, calibration.text
     calibration_id = calibration.json()["id"]
     options = panel.options(MM_PER_PX, (0,))
@@ -115,19 +136,28 @@ def _write(tmp: Path, name: str, text: str) -> Path:
     return path
 
 
-@pytest.mark.parametrize(("change", "fragment"), [
-    ("few", "5 control point(s); at least 6"),
-    ("off_surface", "mm from the model's surface"),
-    ("broken", "panel.obj: not a valid OBJ file"),
-    ("no_model", "upload that file as the 'model' field"),
-    ("plate_and_mesh", "leave out width_mm and height_mm"),
-    ("plane_on_a_line", "not on one line"),
-    ("both_cameras", "give camera or calibration_job, not both"),
-    ("no_calibration", "there is no calibration job 999"),
-])
-def test_bad_mesh_survey_requests_are_422_and_store_nothing(client: TestClient, api_settings,
-                                                            recording_queue: RecordingQueue, panel: CrackSurveyScene,
-                                                            tmp_path: Path, change: str, fragment: str) -> None:
+@pytest.mark.parametrize(
+    ("change", "fragment"),
+    [
+        ("few", "5 control point(s); at least 6"),
+        ("off_surface", "mm from the model's surface"),
+        ("broken", "panel.obj: not a valid OBJ file"),
+        ("no_model", "upload that file as the 'model' field"),
+        ("plate_and_mesh", "leave out width_mm and height_mm"),
+        ("plane_on_a_line", "not on one line"),
+        ("both_cameras", "give camera or calibration_job, not both"),
+        ("no_calibration", "there is no calibration job 999"),
+    ],
+)
+def test_bad_mesh_survey_requests_are_422_and_store_nothing(
+    client: TestClient,
+    api_settings,
+    recording_queue: RecordingQueue,
+    panel: CrackSurveyScene,
+    tmp_path: Path,
+    change: str,
+    fragment: str,
+) -> None:
     options = json.loads(json.dumps(panel.options(MM_PER_PX, (0,))))
     points = options["stages"][0]["photos"][0]["control_points"]
     model: Path | None = panel.mesh_path

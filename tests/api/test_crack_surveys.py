@@ -55,8 +55,11 @@ def pair_up(found: list[dict], truth: list[TrueCrack]) -> list[tuple[dict, TrueC
 
 
 def survey(client: TestClient, api_settings, scene: CrackSurveyScene, views: tuple[int, ...]) -> dict:
-    response = client.post("/api/crack-surveys", files=upload(scene.paths(views)),
-                           data={"options": json.dumps(scene.options(MM_PER_PX, views))})
+    response = client.post(
+        "/api/crack-surveys",
+        files=upload(scene.paths(views)),
+        data={"options": json.dumps(scene.options(MM_PER_PX, views))},
+    )
     assert response.status_code == 202, response.text
     job = response.json()
     assert job["flight_id"] is None and job["kind"] == "crack_survey"
@@ -86,14 +89,17 @@ def check_against_truth(result: dict, scene: CrackSurveyScene) -> list[str]:
                 assert reported["status"] == "grown" and abs(reported["growth_mm"] - 15.0) < 3.0
             else:
                 assert reported["status"] == crack.status, (reported["status"], crack.status)
-        lines.append(f"{stage['label']}: {len(found)} cracks, total {stage['total_length_mm'] / true_total - 1:+.1%}, "
-                     f"worst crack {max(errors, key=abs):+.1%}, mean width {np.mean(width_errors):+.2f} mm off")
+        lines.append(
+            f"{stage['label']}: {len(found)} cracks, total {stage['total_length_mm'] / true_total - 1:+.1%}, "
+            f"worst crack {max(errors, key=abs):+.1%}, mean width {np.mean(width_errors):+.2f} mm off"
+        )
     return lines
 
 
 @pytest.mark.parametrize("view", range(len(ANGLES)), ids=[f"{a:.0f}deg" for a in ANGLES])
-def test_cracks_measured_in_mm_at_each_viewing_angle(client: TestClient, api_settings, scene: CrackSurveyScene,
-                                                     view: int) -> None:
+def test_cracks_measured_in_mm_at_each_viewing_angle(
+    client: TestClient, api_settings, scene: CrackSurveyScene, view: int
+) -> None:
     result = survey(client, api_settings, scene, (view,))
     for photo in result["photos"]:  # control points carry 0.3 px of noise
         assert photo["rms_px"] < 0.6 and photo["rms_mm"] < 0.3 and len(photo["points"]) == 7
@@ -102,16 +108,24 @@ def test_cracks_measured_in_mm_at_each_viewing_angle(client: TestClient, api_set
     assert (second["from"], second["to"], second["new"], second["grown"], second["unchanged"]) == (0, 1, 2, 1, 4)
 
 
-def test_stage_of_three_photos_is_composed_and_its_outputs_written(client: TestClient, api_settings,
-                                                                   scene: CrackSurveyScene) -> None:
+def test_stage_of_three_photos_is_composed_and_its_outputs_written(
+    client: TestClient, api_settings, scene: CrackSurveyScene
+) -> None:
     result = survey(client, api_settings, scene, (0, 1, 2))
     check_against_truth(result, scene)
     # 900 px photos of a 200 mm plate resolve ~0.3 mm, the 60 degree view best: the 0.25 mm raster is fine
     assert all(0.2 < stage["photo_mm_per_px"] < 0.4 for stage in result["stages"]), result["stages"]
     assert result["warnings"] == []
     outputs = {o["name"] for o in client.get(f"/api/jobs/{result['job_id']}/outputs").json()["outputs"]}
-    assert {"report.json", "cracks.geojson", "cracks.csv", "stage_00_rectified.tif", "stage_01_rectified.tif",
-            "stage_00_overlay.png", "stage_01_overlay.png"} <= outputs
+    assert {
+        "report.json",
+        "cracks.geojson",
+        "cracks.csv",
+        "stage_00_rectified.tif",
+        "stage_01_rectified.tif",
+        "stage_00_overlay.png",
+        "stage_01_overlay.png",
+    } <= outputs
     cog = client.get(f"/api/jobs/{result['job_id']}/outputs/stage_01_rectified.tif")
     with rasterio.MemoryFile(cog.content) as memory, memory.open() as dataset:
         assert (dataset.width, dataset.height, dataset.count) == (801, 601, 3)
@@ -128,8 +142,9 @@ def test_stage_of_three_photos_is_composed_and_its_outputs_written(client: TestC
     assert len(rows) == len(geojson["features"]) and float(rows[0]["length_mm"]) > 0
 
 
-def test_a_misplaced_control_point_fails_the_job_naming_it(client: TestClient, api_settings,
-                                                          scene: CrackSurveyScene) -> None:
+def test_a_misplaced_control_point_fails_the_job_naming_it(
+    client: TestClient, api_settings, scene: CrackSurveyScene
+) -> None:
     options = scene.options(MM_PER_PX, (1,))
     options["stages"][1]["photos"][0]["control_points"][5]["pixel"][0] += 60.0
     response = client.post("/api/crack-surveys", files=upload(scene.paths((1,))), data={"options": json.dumps(options)})
@@ -144,8 +159,9 @@ def _fewer_points(o: dict) -> None:
 
 
 def _collinear(o: dict) -> None:
-    o["stages"][0]["photos"][0]["control_points"] = [{"pixel": [100.0 + k, 100.0], "model": [10.0 * k, 20.0, 0.0]}
-                                                     for k in range(5)]
+    o["stages"][0]["photos"][0]["control_points"] = [
+        {"pixel": [100.0 + k, 100.0], "model": [10.0 * k, 20.0, 0.0]} for k in range(5)
+    ]
 
 
 def _outside(o: dict) -> None:
@@ -157,8 +173,9 @@ def _wrong_size(o: dict) -> None:
 
 
 def _not_uploaded(o: dict) -> None:
-    o["stages"][1]["photos"].append({"image": "missing.png", "control_points": o["stages"][1]["photos"][0]
-                                     ["control_points"]})
+    o["stages"][1]["photos"].append(
+        {"image": "missing.png", "control_points": o["stages"][1]["photos"][0]["control_points"]}
+    )
 
 
 def _not_named(o: dict) -> None:
@@ -170,18 +187,21 @@ def _bad_camera(o: dict) -> None:
     o["camera"]["fx"] = -5
 
 
-@pytest.mark.parametrize(("change", "fragment"), [
-    (_fewer_points, "3 control point(s); at least 4"),
-    (_collinear, "lie on one line"),
-    (_outside, "outside the specimen"),
-    (_wrong_size, "but the camera is 1000x700"),
-    (_not_uploaded, "not uploaded: missing.png"),
-    (_not_named, "no stage of options.stages names: stage2_view2_45deg.png"),
-    (_bad_camera, "options.camera: camera.fx and camera.fy must be positive"),
-])
-def test_bad_crack_survey_requests_are_422_and_store_nothing(client: TestClient, api_settings,
-                                                             recording_queue: RecordingQueue,
-                                                             scene: CrackSurveyScene, change, fragment: str) -> None:
+@pytest.mark.parametrize(
+    ("change", "fragment"),
+    [
+        (_fewer_points, "3 control point(s); at least 4"),
+        (_collinear, "lie on one line"),
+        (_outside, "outside the specimen"),
+        (_wrong_size, "but the camera is 1000x700"),
+        (_not_uploaded, "not uploaded: missing.png"),
+        (_not_named, "no stage of options.stages names: stage2_view2_45deg.png"),
+        (_bad_camera, "options.camera: camera.fx and camera.fy must be positive"),
+    ],
+)
+def test_bad_crack_survey_requests_are_422_and_store_nothing(
+    client: TestClient, api_settings, recording_queue: RecordingQueue, scene: CrackSurveyScene, change, fragment: str
+) -> None:
     options = json.loads(json.dumps(scene.options(MM_PER_PX, (1,))))
     change(options)
     response = client.post("/api/crack-surveys", files=upload(scene.paths((1,))), data={"options": json.dumps(options)})

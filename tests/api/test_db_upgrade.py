@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from sqlalchemy import MetaData, create_engine, select
 
-from api.db import Base, Database, Job, utcnow
+from core.db import Base, Database, Job, utcnow
 
 
 def test_old_database_accepts_calibration_jobs_and_keeps_its_records(api_settings) -> None:
@@ -17,12 +17,27 @@ def test_old_database_accepts_calibration_jobs_and_keeps_its_records(api_setting
     engine = create_engine(url)
     old.create_all(engine)
     with engine.begin() as conn:
-        flight_id = conn.execute(old.tables["flights"].insert().values(name="park", description="", created_at=utcnow())
-                                 ).inserted_primary_key[0]
-        old_id = conn.execute(old.tables["jobs"].insert().values(
-            flight_id=flight_id, kind="mosaic", status="succeeded", stage="write_report", progress=100.0,
-            progress_detail="done", timings={"load_images": 1.5}, options={"mode": "planar"}, error="",
-            celery_id="c1", created_at=utcnow(), updated_at=utcnow())).inserted_primary_key[0]
+        flight_id = conn.execute(
+            old.tables["flights"].insert().values(name="park", description="", created_at=utcnow())
+        ).inserted_primary_key[0]
+        old_id = conn.execute(
+            old.tables["jobs"]
+            .insert()
+            .values(
+                flight_id=flight_id,
+                kind="mosaic",
+                status="succeeded",
+                stage="write_report",
+                progress=100.0,
+                progress_detail="done",
+                timings={"load_images": 1.5},
+                options={"mode": "planar"},
+                error="",
+                celery_id="c1",
+                created_at=utcnow(),
+                updated_at=utcnow(),
+            )
+        ).inserted_primary_key[0]
     engine.dispose()
 
     db = Database(url)

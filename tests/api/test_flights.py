@@ -16,8 +16,10 @@ def frames(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 
 
 def multipart(paths: list[Path], names: list[str] | None = None) -> list[tuple[str, tuple[str, bytes, str]]]:
-    return [("files", (name, p.read_bytes(), "image/jpeg")) for p, name in zip(paths, names or [p.name for p in paths],
-                                                                               strict=True)]
+    return [
+        ("files", (name, p.read_bytes(), "image/jpeg"))
+        for p, name in zip(paths, names or [p.name for p in paths], strict=True)
+    ]
 
 
 def new_flight(client: TestClient, name: str = "park") -> int:
@@ -51,15 +53,18 @@ def test_upload_answers_metadata_and_stores_files(client: TestClient, api_settin
     assert client.get(f"/api/flights/{flight_id}").json()["image_count"] == 3
 
 
-@pytest.mark.parametrize(("kind", "status", "reason"), [
-    ("not_image", 422, "not a readable image"),
-    ("truncated", 422, "truncated"),
-    ("empty", 422, "empty file"),
-    ("bomb", 413, "decompression bomb"),
-])
-def test_bad_file_is_refused_and_nothing_of_the_request_is_kept(client: TestClient, api_settings, frames: list[Path],
-                                                                 tmp_path: Path, kind: str, status: int,
-                                                                 reason: str) -> None:
+@pytest.mark.parametrize(
+    ("kind", "status", "reason"),
+    [
+        ("not_image", 422, "not a readable image"),
+        ("truncated", 422, "truncated"),
+        ("empty", 422, "empty file"),
+        ("bomb", 413, "decompression bomb"),
+    ],
+)
+def test_bad_file_is_refused_and_nothing_of_the_request_is_kept(
+    client: TestClient, api_settings, frames: list[Path], tmp_path: Path, kind: str, status: int, reason: str
+) -> None:
     flight_id = new_flight(client)
     client.post(f"/api/flights/{flight_id}/images", files=multipart(frames[:1]))
     before = stored_files(api_settings, flight_id)
@@ -71,8 +76,9 @@ def test_bad_file_is_refused_and_nothing_of_the_request_is_kept(client: TestClie
     assert client.get(f"/api/flights/{flight_id}").json()["image_count"] == 1
 
 
-def test_unsafe_and_duplicate_names_stay_inside_the_flight_folder(client: TestClient, api_settings,
-                                                                   frames: list[Path]) -> None:
+def test_unsafe_and_duplicate_names_stay_inside_the_flight_folder(
+    client: TestClient, api_settings, frames: list[Path]
+) -> None:
     flight_id = new_flight(client)
     names = ["../../x.jpg", "..\\..\\x.jpg"]
     response = client.post(f"/api/flights/{flight_id}/images", files=multipart(frames[:2], names))
@@ -111,18 +117,29 @@ def test_ground_control_points_are_checked_then_stored(client: TestClient, api_s
     flight_id = client.post("/api/flights", json={"name": "with gcps"}).json()["id"]
     files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in flight.paths]
     assert client.post(f"/api/flights/{flight_id}/images", files=files).status_code == 201
-    good = ("WGS84 UTM 15N\n"
-            "271000.0 3294000.0 12.5 100 120 frame_000.jpg gcp1\n"
-            "271000.0 3294000.0 12.5 300 110 frame_001.jpg gcp1\n"
-            "271020.0 3294010.0 11.0 50 60 frame_001.jpg gcp2\n")
+    good = (
+        "WGS84 UTM 15N\n"
+        "271000.0 3294000.0 12.5 100 120 frame_000.jpg gcp1\n"
+        "271000.0 3294000.0 12.5 300 110 frame_001.jpg gcp1\n"
+        "271020.0 3294010.0 11.0 50 60 frame_001.jpg gcp2\n"
+    )
     response = client.put(f"/api/flights/{flight_id}/gcps", files={"file": ("gcp_list.txt", good.encode())})
     assert response.status_code == 200, response.text
-    assert response.json() == {"file": "gcp_list.txt", "points": 2, "with_position": 2, "observations": 3,
-                               "images_not_in_flight": []}
+    assert response.json() == {
+        "file": "gcp_list.txt",
+        "points": 2,
+        "with_position": 2,
+        "observations": 3,
+        "images_not_in_flight": [],
+    }
     stored = api_settings.data_dir / "flights" / str(flight_id) / "gcp_list.txt"
     assert stored.read_text() == good
-    for content, fragment in [(good.replace("12.5 300", "x 300"), "line 3"), (b"\xff\xfe".decode("latin-1"), "UTF-8"),
-                              ("EPSG:nonsense\n1 2 3 4 5 a.jpg", "line 1"), ("{}", "points")]:
+    for content, fragment in [
+        (good.replace("12.5 300", "x 300"), "line 3"),
+        (b"\xff\xfe".decode("latin-1"), "UTF-8"),
+        ("EPSG:nonsense\n1 2 3 4 5 a.jpg", "line 1"),
+        ("{}", "points"),
+    ]:
         name = "ground_control_points.json" if content == "{}" else "gcp_list.txt"
         bad = client.put(f"/api/flights/{flight_id}/gcps", files={"file": (name, content.encode("latin-1"))})
         assert bad.status_code == 422 and fragment in bad.json()["detail"], bad.text

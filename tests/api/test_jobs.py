@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from api.db import Database
+from core.db import Database
 from tests.conftest import RecordingQueue
 from tests.scenes import make_flight
 from workers.pipeline import stage_names
@@ -27,11 +27,13 @@ def flight_with(client: TestClient, paths: list[Path]) -> int:
     return flight_id
 
 
-def test_job_is_recorded_written_and_enqueued(client: TestClient, api_settings, recording_queue: RecordingQueue,
-                                              frames: list[Path]) -> None:
+def test_job_is_recorded_written_and_enqueued(
+    client: TestClient, api_settings, recording_queue: RecordingQueue, frames: list[Path]
+) -> None:
     flight_id = flight_with(client, frames)
-    response = client.post("/api/jobs", json={"flight_id": flight_id, "kind": "mosaic",
-                                              "options": {"working_max_px": 512}})
+    response = client.post(
+        "/api/jobs", json={"flight_id": flight_id, "kind": "mosaic", "options": {"working_max_px": 512}}
+    )
     assert response.status_code == 202
     job = response.json()
     assert job["status"] == "queued" and job["stages"] == stage_names("mosaic")
@@ -44,13 +46,17 @@ def test_job_is_recorded_written_and_enqueued(client: TestClient, api_settings, 
     assert client.get(f"/tiles/{job['id']}/tilejson.json").status_code == 409
 
 
-@pytest.mark.parametrize(("options", "fragment"), [
-    ({"ratio_test": "high"}, "options.ratio_test"),
-    ({"working_max_px": 10}, "options.working_max_px"),
-    ({"no_such_option": 1}, "options.no_such_option"),
-])
-def test_invalid_options_are_422_and_nothing_is_queued(client: TestClient, recording_queue: RecordingQueue,
-                                                       frames: list[Path], options: dict, fragment: str) -> None:
+@pytest.mark.parametrize(
+    ("options", "fragment"),
+    [
+        ({"ratio_test": "high"}, "options.ratio_test"),
+        ({"working_max_px": 10}, "options.working_max_px"),
+        ({"no_such_option": 1}, "options.no_such_option"),
+    ],
+)
+def test_invalid_options_are_422_and_nothing_is_queued(
+    client: TestClient, recording_queue: RecordingQueue, frames: list[Path], options: dict, fragment: str
+) -> None:
     response = client.post("/api/jobs", json={"flight_id": flight_with(client, frames), "options": options})
     assert response.status_code == 422 and fragment in response.json()["detail"]
     assert recording_queue.sent == []
@@ -65,16 +71,23 @@ def test_job_needs_a_known_flight_with_two_images(client: TestClient, frames: li
 
 
 def test_unknown_job_ids_are_404(client: TestClient) -> None:
-    for path in ("/api/jobs/77", "/api/jobs/77/outputs", "/api/jobs/77/events", "/tiles/77/tilejson.json",
-                 "/tiles/77/1/0/0.png", "/api/jobs/77/outputs/mosaic.tif"):
+    for path in (
+        "/api/jobs/77",
+        "/api/jobs/77/outputs",
+        "/api/jobs/77/events",
+        "/tiles/77/tilejson.json",
+        "/tiles/77/1/0/0.png",
+        "/api/jobs/77/outputs/mosaic.tif",
+    ):
         response = client.get(path)
         assert response.status_code == 404, path
         assert "job 77 not found" in response.json()["detail"]
     assert client.post("/api/jobs/77/cancel").status_code == 404
 
 
-def test_queue_down_is_503_and_the_job_is_marked_failed(client: TestClient, recording_queue: RecordingQueue,
-                                                        frames: list[Path]) -> None:
+def test_queue_down_is_503_and_the_job_is_marked_failed(
+    client: TestClient, recording_queue: RecordingQueue, frames: list[Path]
+) -> None:
     recording_queue.fail = True
     response = client.post("/api/jobs", json={"flight_id": flight_with(client, frames)})
     assert response.status_code == 503
@@ -89,10 +102,12 @@ def test_cancel_then_cancel_again(client: TestClient, frames: list[Path]) -> Non
     assert client.post(f"/api/jobs/{job['id']}/cancel").status_code == 409
 
 
-def test_retry_resumes_from_the_stage_that_stopped(client: TestClient, api_settings, frames: list[Path],
-                                                    recording_queue: RecordingQueue) -> None:
-    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames),
-                                         "options": {"working_max_px": 400}}).json()
+def test_retry_resumes_from_the_stage_that_stopped(
+    client: TestClient, api_settings, frames: list[Path], recording_queue: RecordingQueue
+) -> None:
+    job = client.post(
+        "/api/jobs", json={"flight_id": flight_with(client, frames), "options": {"working_max_px": 400}}
+    ).json()
     assert client.post(f"/api/jobs/{job['id']}/retry").status_code == 409  # still queued
     db = Database(api_settings.resolved_database_url())
     execute_stage(job["id"], "load_images", db=db, data_dir=api_settings.data_dir)
@@ -111,8 +126,9 @@ def test_retry_resumes_from_the_stage_that_stopped(client: TestClient, api_setti
 
 def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_settings, frames: list[Path]) -> None:
     """The Celery tasks' body, in-process: the record advances stage by stage and ends succeeded."""
-    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames),
-                                         "options": {"working_max_px": 400}}).json()
+    job = client.post(
+        "/api/jobs", json={"flight_id": flight_with(client, frames), "options": {"working_max_px": 400}}
+    ).json()
     db = Database(api_settings.resolved_database_url())
     progress = []
     for stage in job["stages"]:

@@ -22,7 +22,7 @@ LAUNCH_ARGS = [
 ]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "artifacts"
 JOB_TIMEOUT_MS = 180_000
-TILE_URL = re.compile(r"/tiles/\d+/(?:stages/\d+/)?\d+/\d+/\d+\.png")  # a mosaic's or a load stage's
+TILE_URL = re.compile(r"/tiles/\d+/(?:load-steps/\d+/)?\d+/\d+/\d+\.png")  # a mosaic's or a load stage's
 TERMINAL_STATUS_JS = """() => {
   const badge = document.querySelector('[data-testid="job-status"]');
   return badge !== null && ['succeeded', 'failed', 'cancelled'].includes(badge.textContent.trim());

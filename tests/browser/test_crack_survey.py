@@ -23,12 +23,12 @@ import pytest
 
 from tests.browser.support import ARTIFACTS, JOB_TIMEOUT_MS, MOSAIC_TILES_SETTLED_JS, TERMINAL_STATUS_JS, wait_for
 from tests.crack_scenes import CrackSurveyScene, make_crack_survey
-from workers.algorithms.mesh import read_mesh
+from workers.algorithms.specimen import read_mesh
 
 pytestmark = pytest.mark.browser
 
 MM_PER_PX = 0.25
-STAGE_TILE = re.compile(r"/tiles/\d+/stages/(\d+)/\d+/\d+/\d+\.png$")
+STAGE_TILE = re.compile(r"/tiles/\d+/load-steps/(\d+)/\d+/\d+/\d+\.png$")
 # The scene's control points 0-3 are the specimen's corners: in a panel's X-Y plan view top left, top right,
 # bottom left, bottom right. A click just outside the mesh there picks that corner, a vertex of the mesh.
 PLAN_CORNERS = {0: (0.01, 0.01), 1: (0.99, 0.01), 2: (0.01, 0.99), 3: (0.99, 0.99)}
@@ -54,8 +54,14 @@ def _screenshot(page: Any, name: str) -> None:
     page.evaluate("() => window.scrollTo(0, 0)")
 
 
-def _click_points(page: Any, photo: Any, points: list[dict[str, list[float]]], first: int = 0, axes: str = "xy",
-                  picked: tuple[int, ...] = ()) -> None:
+def _click_points(
+    page: Any,
+    photo: Any,
+    points: list[dict[str, list[float]]],
+    first: int = 0,
+    axes: str = "xy",
+    picked: tuple[int, ...] = (),
+) -> None:
     """Click each control point where it lies on the displayed photo, then type its model coordinates along
     ``axes``; the points numbered in ``picked`` (corners, see ``PLAN_CORNERS``) take theirs from the mesh's
     vertex picked in the plan view instead."""
@@ -116,7 +122,9 @@ def test_two_stage_survey_made_and_read_in_the_browser(watched_page, live_servic
     expect(page.get_by_test_id("survey-error")).to_contain_text("3 control point(s); at least 4 are needed")
     _screenshot(page, "crack_survey_form")
     expect(editors[0].get_by_test_id("marker")).to_have_count(len(photos[0].control_points))
-    expect(editors[1].get_by_test_id("point-model-x").nth(2)).to_have_value(f"{photos[1].control_points[2]['model'][0]:g}")
+    expect(editors[1].get_by_test_id("point-model-x").nth(2)).to_have_value(
+        f"{photos[1].control_points[2]['model'][0]:g}"
+    )
     watch.forget("/api/crack-surveys")
     _click_points(page, editors[1], photos[1].control_points[3:], first=3)
     expect(editors[1].get_by_test_id("point-count")).to_have_text(f"{len(photos[1].control_points)} control points")
@@ -165,8 +173,7 @@ def test_two_stage_survey_made_and_read_in_the_browser(watched_page, live_servic
     watch.assert_clean(live_service.url)
 
 
-def test_mesh_survey_of_a_curved_panel_made_in_the_browser(watched_page, live_service,
-                                                           panel: CrackSurveyScene) -> None:
+def test_mesh_survey_of_a_curved_panel_made_in_the_browser(watched_page, live_service, panel: CrackSurveyScene) -> None:
     """The panel's model chosen (after a malformed one, refused before anything is sent), two stages of one
     photo each, corners picked in the plan view and marks typed (X, Y, Z); a refusal for too few points, then
     the survey, whose crack counts are the truth's."""
@@ -244,8 +251,9 @@ def test_failed_survey_shows_its_error(watched_page, live_service, scene: CrackS
     options = json.loads(json.dumps(scene.options(MM_PER_PX)))  # the scene's own lists stay as they are
     options["stages"][1]["photos"][0]["control_points"][5]["pixel"][0] += 60.0  # a point clicked off its mark
     files = [("files", (p.name, p.read_bytes(), "image/png")) for p in scene.paths()]
-    response = httpx.post(f"{live_service.url}/api/crack-surveys", files=files, data={"options": json.dumps(options)},
-                          timeout=60)
+    response = httpx.post(
+        f"{live_service.url}/api/crack-surveys", files=files, data={"options": json.dumps(options)}, timeout=60
+    )
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=120)
     assert job["status"] == "failed"
@@ -269,8 +277,11 @@ def test_camera_of_a_calibration_job_is_sent_by_its_id(watched_page, live_servic
 
     page, watch = watched_page
     job = {"flight_id": None, "status": "succeeded", "created_at": "2026-01-02T03:04:05", "options": {}}
-    jobs = [{**job, "id": 41, "kind": "calibration"}, {**job, "id": 42, "kind": "calibration", "status": "failed"},
-            {**job, "id": 43, "kind": "crack_survey"}]
+    jobs = [
+        {**job, "id": 41, "kind": "calibration"},
+        {**job, "id": 42, "kind": "calibration", "status": "failed"},
+        {**job, "id": 43, "kind": "crack_survey"},
+    ]
     sent: list[bytes] = []
 
     def refuse(route: Any) -> None:
@@ -297,7 +308,7 @@ def test_camera_of_a_calibration_job_is_sent_by_its_id(watched_page, live_servic
     options = json.loads(field[1])
     assert options["calibration_job"] == 41 and "camera" not in options and options["mm_per_px"] == 0.2
     (stage,) = options["stages"]
-    assert stage["label"] == "Stage 1" and "load" not in stage and stage["photos"][0]["image"] == photo.path.name
+    assert stage["label"] == "Load step 1" and "load" not in stage and stage["photos"][0]["image"] == photo.path.name
     points = stage["photos"][0]["control_points"]
     assert [p["model"] for p in points] == [p["model"] for p in photo.control_points[:4]]
     clicked = np.array([p["pixel"] for p in points])
@@ -339,7 +350,8 @@ def test_mesh_plane_and_model_are_sent(watched_page, live_service, panel: CrackS
     _click_points(page, editor, photo.control_points[:6], axes="xyz")
     page.get_by_test_id("submit-survey").click()
     expect(page.get_by_test_id("survey-error")).to_have_text(
-        "Not started: options.specimen: the three plane points are on one line")
+        "Not started: options.specimen: the three plane points are on one line"
+    )
     expect(editor.get_by_test_id("point-model-z").nth(5)).to_have_value(f"{photo.control_points[5]['model'][2]:g}")
     (body,) = sent
     field = re.search(rb'name="options"\r\n\r\n(.*?)\r\n--', body, re.S)

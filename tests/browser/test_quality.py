@@ -25,17 +25,35 @@ NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
 
 # A report.json triangulation as the ortho pipeline writes it, with some fields missing on purpose.
 TRIANGULATION = {
-    "registered": 28, "total": 29,
+    "registered": 28,
+    "total": 29,
     "not_registered": [{"name": "frame_028.jpg", "reason": "too few tie points with the registered cameras"}],
-    "rms_px": 0.61, "rms_px_original": 1.22, "observations": 5120, "points": 1400, "outliers_dropped": 37,
+    "rms_px": 0.61,
+    "rms_px_original": 1.22,
+    "observations": 5120,
+    "points": 1400,
+    "outliers_dropped": 37,
     "datum": "gps+gcp",
     "self_calibration": {"focal": {"initial": 3000.0, "adjusted": 3012.4}, "k1": {"initial": 0.0, "adjusted": -0.0123}},
-    "images": [{"name": f"frame_{i:03d}.jpg", "rms_px": 0.5 + i / 100, "observations": 180 + i,
-                "gps_residual_m": 0.8 if i else None} for i in range(28)],
+    "images": [
+        {
+            "name": f"frame_{i:03d}.jpg",
+            "rms_px": 0.5 + i / 100,
+            "observations": 180 + i,
+            "gps_residual_m": 0.8 if i else None,
+        }
+        for i in range(28)
+    ],
     "gps_residual_rms_m": 1.05,
     "gcps": [
-        {"id": "gcp1", "role": "control", "observations": 4, "residual_px": 0.7, "error_m": [0.01, -0.02, 0.03],
-         "error_3d_m": 0.037},
+        {
+            "id": "gcp1",
+            "role": "control",
+            "observations": 4,
+            "residual_px": 0.7,
+            "error_m": [0.01, -0.02, 0.03],
+            "error_3d_m": 0.037,
+        },
         {"id": "chk1", "role": "checkpoint", "observations": 3, "residual_px": None, "error_m": None},  # no error_3d_m
     ],
 }
@@ -123,8 +141,9 @@ def test_failed_calibration_shows_its_error(watched_page, live_service, tmp_path
     cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
     photos = [*sorted(shared_data("calib_chessboard").glob("left*.jpg"))[:2], blank]
     options = json.dumps({"pattern": [9, 6], "square_mm": 25})
-    response = httpx.post(f"{live_service.url}/api/calibrations", files=_jpegs(photos, "files"),
-                          data={"options": options}, timeout=60)
+    response = httpx.post(
+        f"{live_service.url}/api/calibrations", files=_jpegs(photos, "files"), data={"options": options}, timeout=60
+    )
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=120)
     assert job["status"] == "failed"
@@ -145,8 +164,9 @@ def test_stereo_rig_page_and_measure(watched_page, live_service) -> None:
 
     page, watch = watched_page
     folder = shared_data("calib_chessboard")
-    files = _jpegs(sorted(folder.glob("left*.jpg"))[:6], "left") + _jpegs(sorted(folder.glob("right*.jpg"))[:6],
-                                                                          "right")
+    files = _jpegs(sorted(folder.glob("left*.jpg"))[:6], "left") + _jpegs(
+        sorted(folder.glob("right*.jpg"))[:6], "right"
+    )
     job = _post_job(live_service, "/api/stereo-rigs", files, {"pattern": [9, 6], "square_mm": 25})
 
     page.goto(f"{live_service.url}/#/jobs/{job['id']}")
@@ -230,11 +250,13 @@ def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_p
     page, watch = watched_page
     flight_id = planar_job["flight_id"]
     gcps = tmp_path / "gcp_list.txt"
-    gcps.write_text("WGS84 UTM 15N\n"
-                    "271000.0 3294000.0 10.0 240 180 frame_000.jpg gcp1\n"
-                    "271000.0 3294000.0 10.0 120 170 frame_001.jpg gcp1\n"
-                    "271050.0 3294010.0 12.0 300 90 frame_001.jpg gcp2\n"
-                    "271050.0 3294010.0 12.0 30 60 elsewhere.jpg gcp2\n")
+    gcps.write_text(
+        "WGS84 UTM 15N\n"
+        "271000.0 3294000.0 10.0 240 180 frame_000.jpg gcp1\n"
+        "271000.0 3294000.0 10.0 120 170 frame_001.jpg gcp1\n"
+        "271050.0 3294010.0 12.0 300 90 frame_001.jpg gcp2\n"
+        "271050.0 3294010.0 12.0 30 60 elsewhere.jpg gcp2\n"
+    )
     bad = tmp_path / "bad.txt"
     bad.write_text("not a coordinate system\n")
 
@@ -243,7 +265,8 @@ def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_p
     expect(page.locator(".gcp-upload")).to_contain_text("ortho jobs")
     page.get_by_test_id("gcp-input").set_input_files(str(gcps))
     expect(page.get_by_test_id("gcp-status")).to_have_text(
-        "Stored gcp_list.txt: 2 points (2 with a position), 4 observations. Not in this flight: elsewhere.jpg.")
+        "Stored gcp_list.txt: 2 points (2 with a position), 4 observations. Not in this flight: elsewhere.jpg."
+    )
     page.get_by_test_id("gcp-input").set_input_files(str(bad))
     expect(page.get_by_test_id("gcp-error")).to_contain_text("Not stored")
     expect(page.get_by_test_id("gcp-error")).to_contain_text("bad.txt: line 1: unknown coordinate system")  # detail

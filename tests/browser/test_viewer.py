@@ -19,6 +19,7 @@ from tests.scenes import make_flight
 
 pytestmark = pytest.mark.browser
 
+
 @pytest.fixture(params=["synthetic", "brighton"])
 def photos(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, list[Path], str]:
     """(name, photo files, their size as the page prints it): 5 synthetic frames, or the 6 real

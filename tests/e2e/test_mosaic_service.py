@@ -29,8 +29,9 @@ def upload_flight(service: LiveService, name: str, paths: list[Path]) -> int:
 
 
 def run_job(service: LiveService, flight_id: int, options: dict | None = None) -> dict:
-    response = httpx.post(f"{service.url}/api/jobs", json={"flight_id": flight_id, "kind": "mosaic",
-                                                           "options": options or {}}, timeout=10)
+    response = httpx.post(
+        f"{service.url}/api/jobs", json={"flight_id": flight_id, "kind": "mosaic", "options": options or {}}, timeout=10
+    )
     assert response.status_code == 202, response.text
     job = service.wait_for_job(response.json()["id"])
     assert job["status"] == "succeeded", f"{job['error']} (logs in {service.logs})"
@@ -131,8 +132,11 @@ def test_ortho_job_with_ground_control(live_service: LiveService, tmp_path: Path
     flight = make_terrain_flight(tmp_path / "terrain", rows=3, per_row=3, frame_size=(640, 480), seed=5)
     flight_id = upload_flight(live_service, "terrain", flight.paths)
     gcp_text = gcp_list_for(flight, [(-8.0, 5.0), (9.0, -6.0), (10.0, 8.0), (-9.0, -7.0), (0.5, 0.5)])
-    response = httpx.put(f"{live_service.url}/api/flights/{flight_id}/gcps",
-                         files={"file": ("gcp_list.txt", gcp_text.encode())}, timeout=10)
+    response = httpx.put(
+        f"{live_service.url}/api/flights/{flight_id}/gcps",
+        files={"file": ("gcp_list.txt", gcp_text.encode())},
+        timeout=10,
+    )
     assert response.status_code == 200 and response.json()["with_position"] == 5, response.text
     job = run_job(live_service, flight_id, {"mode": "ortho", "checkpoints": ["g4"]})
     assert job["stages"][3:5] == ["adjust_bundle", "orthorectify_frames"]

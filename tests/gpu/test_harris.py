@@ -24,7 +24,7 @@ def test_suppression_and_compaction_match_a_naive_reference(xp) -> None:
     naive = np.zeros_like(mask)
     for y in range(40):
         for x in range(50):
-            window = response[max(y - 2, 0): y + 3, max(x - 2, 0): x + 3]
+            window = response[max(y - 2, 0) : y + 3, max(x - 2, 0) : x + 3]
             naive[y, x] = response[y, x] > 0.5 and response[y, x] == window.max()
     assert np.array_equal(mask, naive)
     corners = compact(xp.asarray(mask), xp.asarray(response))

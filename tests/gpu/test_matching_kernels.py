@@ -13,8 +13,9 @@ from tests.gpu.conftest import host
 from tests.gpu.kernel_cases import textured_image
 
 
-def naive_matches(a: np.ndarray, b: np.ndarray, ratio: float, mutual: bool,
-                  allowed: np.ndarray | None) -> set[tuple[int, int]]:
+def naive_matches(
+    a: np.ndarray, b: np.ndarray, ratio: float, mutual: bool, allowed: np.ndarray | None
+) -> set[tuple[int, int]]:
     d = ((a[:, None, :].astype(np.float64) - b[None, :, :]) ** 2).sum(axis=2)
     if allowed is not None:
         d[~allowed] = np.inf
@@ -85,10 +86,17 @@ def test_empty_inputs(xp) -> None:
     assert len(found.index_a) == 0
 
 
-def naive_ncc(image_a: np.ndarray, xy_a: np.ndarray, image_b: np.ndarray, xy_b: np.ndarray, half: int,
-              threshold: float, allowed: np.ndarray) -> set[tuple[int, int]]:
+def naive_ncc(
+    image_a: np.ndarray,
+    xy_a: np.ndarray,
+    image_b: np.ndarray,
+    xy_b: np.ndarray,
+    half: int,
+    threshold: float,
+    allowed: np.ndarray,
+) -> set[tuple[int, int]]:
     def window(img, x, y):
-        return img[y - half: y + half + 1, x - half: x + half + 1].astype(np.float64).ravel()
+        return img[y - half : y + half + 1, x - half : x + half + 1].astype(np.float64).ravel()
 
     scores = np.full((len(xy_a), len(xy_b)), -np.inf)
     for i, (xa, ya) in enumerate(xy_a):
@@ -107,6 +115,7 @@ def test_ncc_matching_equals_an_exhaustive_reference_and_finds_a_planted_shift(x
     base = textured_image(220, 260, seed=5)
     shift = (17, -9)  # image b = image a moved right 17 px and up 9 px
     image_b = np.roll(np.roll(base, shift[0], axis=1), shift[1], axis=0)
+
     def corners(img: np.ndarray) -> np.ndarray:
         found = harris_corners(xp.asarray(img), radius=4, threshold=1e-3, cell_px=40, per_cell=4)
         return host(found.xy).astype(int)

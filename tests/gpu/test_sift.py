@@ -50,8 +50,13 @@ def test_repeatability_and_precision_reach_ninety_percent_of_opencv(xp, source: 
     detector = cv2.SIFT_create()
     (k1, c1), (k2, c2) = detector.detectAndCompute(img1, None), detector.detectAndCompute(img2, None)
     xy1, xy2 = np.array([k.pt for k in k1]), np.array([k.pt for k in k2])
-    theirs = scores(xy1, xp.asarray(c1 / np.linalg.norm(c1, axis=1, keepdims=True)), xy2,
-                    xp.asarray(c2 / np.linalg.norm(c2, axis=1, keepdims=True)), img1.shape)
+    theirs = scores(
+        xy1,
+        xp.asarray(c1 / np.linalg.norm(c1, axis=1, keepdims=True)),
+        xy2,
+        xp.asarray(c2 / np.linalg.norm(c2, axis=1, keepdims=True)),
+        img1.shape,
+    )
     assert ours[0] >= 0.9 * theirs[0], f"repeatability {ours[0]:.3f} vs OpenCV {theirs[0]:.3f}"
     assert ours[1] >= 0.9 * theirs[1], f"precision {ours[1]:.3f} vs OpenCV {theirs[1]:.3f}"
     assert ours[2] >= 0.9 * theirs[2], f"correct matches {ours[2]} vs OpenCV {theirs[2]}"

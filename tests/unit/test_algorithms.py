@@ -5,19 +5,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.algorithms.alignment import (
+from workers.algorithms.geometry import fit_similarity, lonlat_to_utm, utm_epsg, utm_to_lonlat
+from workers.algorithms.mosaic import (
     TiePoints,
     apply_homography,
+    candidate_pairs,
     chain_homographies,
+    estimate_homography,
+    feather_weights,
     frame_corners,
+    gain_compensation,
     is_plausible,
+    local_metres,
+    match_ratio,
+    overlap_statistics,
     refine_homographies,
     spanning_tree,
+    spread_subset,
+    warp_maps,
 )
-from workers.algorithms.blending import feather_weights, gain_compensation, overlap_statistics, warp_maps
-from workers.algorithms.georef import fit_similarity, lonlat_to_utm, utm_epsg, utm_to_lonlat
-from workers.algorithms.matching import estimate_homography, match_ratio, spread_subset
-from workers.algorithms.pairing import candidate_pairs, local_metres
 
 PLANTED = np.array([[0.95, -0.12, 40.0], [0.10, 1.02, -25.0], [2e-5, -1e-5, 1.0]])
 
@@ -98,8 +104,13 @@ def test_plausibility_rejects_folded_and_stretched_frames() -> None:
 def test_similarity_fit_recovers_a_planted_one_without_reflection() -> None:
     rng = np.random.default_rng(4)
     angle, scale = np.radians(37.0), 0.031
-    M = np.array([[scale * np.cos(angle), -scale * np.sin(angle), 576000.0],
-                  [scale * np.sin(angle), scale * np.cos(angle), 5188000.0], [0, 0, 1.0]])
+    M = np.array(
+        [
+            [scale * np.cos(angle), -scale * np.sin(angle), 576000.0],
+            [scale * np.sin(angle), scale * np.cos(angle), 5188000.0],
+            [0, 0, 1.0],
+        ]
+    )
     src = rng.uniform(0, 4000, (6, 2))
     fitted = fit_similarity(src, apply_homography(M, src))
     assert np.allclose(fitted, M, atol=1e-6)
@@ -124,7 +135,7 @@ def test_gain_compensation_undoes_planted_exposure_differences() -> None:
     ground = rng.uniform(60, 200, (100, 300, 3))
     masks = [np.zeros((100, 300), bool) for _ in range(3)]
     for k, mask in enumerate(masks):
-        mask[:, 100 * k: 100 * k + 150] = True
+        mask[:, 100 * k : 100 * k + 150] = True
     planted = np.array([1.0, 1.25, 0.8])
     images = [np.clip(ground / g, 0, 255) for g in planted]  # frame k is 1/g_k as bright
     means, counts = overlap_statistics(images, masks)

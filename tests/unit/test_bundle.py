@@ -10,25 +10,27 @@ import numpy as np
 import pytest
 
 from tests.sfm_scenes import ground_height, make_sfm_scene, similarity_align
-from workers.algorithms.bundle import (
+from workers.algorithms.geometry import (
+    rotation_from_vector,
+    rotations_from_vectors,
+    vector_from_rotation,
+    world_to_camera,
+)
+from workers.algorithms.sfm import (
+    Attitude,
     BundleOptions,
     BundleProblem,
+    GpsFix,
+    GroundControlPoint,
+    ReconstructionOptions,
     adjust,
+    reconstruct,
     refine_points,
     reproject,
     rms,
     robust_rho,
-    rotations_from_vectors,
-    triangulate_rays,
-)
-from workers.algorithms.camera import rotation_from_vector, vector_from_rotation, world_to_camera
-from workers.algorithms.gcp import GroundControlPoint
-from workers.algorithms.reconstruction import (
-    Attitude,
-    GpsFix,
-    ReconstructionOptions,
-    reconstruct,
     rotation_from_attitude,
+    triangulate_rays,
 )
 
 
@@ -57,8 +59,7 @@ def test_vectorised_rodrigues_and_projection_match_the_camera_model() -> None:
     ours = reproject(cam, rvecs, centres, points, frame, point)
     pairs = list(zip(frame, point, strict=True))
     ok = np.array([world_to_camera(points[p][None], R[f], centres[f])[0, 2] > 0 for f, p in pairs])
-    reference = np.array([cam.project(world_to_camera(points[p][None], R[f], centres[f]))[0]
-                          for f, p in pairs])
+    reference = np.array([cam.project(world_to_camera(points[p][None], R[f], centres[f]))[0] for f, p in pairs])
     assert np.allclose(ours[ok], reference[ok], rtol=1e-10, atol=1e-8)
 
 
@@ -78,16 +79,21 @@ def test_loss_derivatives_are_consistent() -> None:
 def test_triangulation_and_point_refinement_hit_the_truth(scene) -> None:
     frames = np.repeat(np.arange(5), 40)
     pts = np.tile(np.arange(40), 5)
-    seen = np.array([(world_to_camera(scene.points[p][None], scene.rotations[f], scene.centres[f]))[0, 2] > 0
-                     for f, p in zip(frames, pts, strict=True)])
+    seen = np.array(
+        [
+            (world_to_camera(scene.points[p][None], scene.rotations[f], scene.centres[f]))[0, 2] > 0
+            for f, p in zip(frames, pts, strict=True)
+        ]
+    )
     frames, pts = frames[seen], pts[seen]
     xy = np.array([scene.project(f, scene.points[p][None])[0] for f, p in zip(frames, pts, strict=True)])
     rays = np.einsum("kji,kj->ki", scene.rotations[frames], scene.camera.unproject(xy))  # R^T ray
     X, ok = triangulate_rays(scene.centres[frames], rays, pts, 40)
     assert ok.all() and np.abs(X - scene.points[:40]).max() < 1e-6
     rng = np.random.default_rng(1)
-    refined = refine_points(scene.camera, scene.rotations[frames], scene.centres[frames], xy, pts,
-                            X + rng.normal(0, 0.5, X.shape))
+    refined = refine_points(
+        scene.camera, scene.rotations[frames], scene.centres[frames], xy, pts, X + rng.normal(0, 0.5, X.shape)
+    )
     assert np.abs(refined - scene.points[:40]).max() < 1e-6
 
 
@@ -100,10 +106,18 @@ def test_bundle_adjustment_recovers_cameras_intrinsics_and_rejects_outliers(scen
     xy[bad] += rng.normal(0, 30, (bad.sum(), 2))
     n = len(scene.centres)
     rvecs = np.array([vector_from_rotation(R) for R in scene.rotations]) + rng.normal(0, 0.01, (n, 3))
-    problem = BundleProblem(scene.camera.replace(fx=1030.0, fy=1030.0, k1=0.0, k2=0.0), rvecs,
-                            scene.centres + rng.normal(0, 0.5, (n, 3)), scene.points + rng.normal(0, 0.3, (len(
-                                scene.points), 3)), frame, point, xy, gps_frame=np.arange(n),
-                            gps_xyz=scene.centres + rng.normal(0, 0.02, (n, 3)), gps_sigma=np.full((n, 3), 0.02))
+    problem = BundleProblem(
+        scene.camera.replace(fx=1030.0, fy=1030.0, k1=0.0, k2=0.0),
+        rvecs,
+        scene.centres + rng.normal(0, 0.5, (n, 3)),
+        scene.points + rng.normal(0, 0.3, (len(scene.points), 3)),
+        frame,
+        point,
+        xy,
+        gps_frame=np.arange(n),
+        gps_xyz=scene.centres + rng.normal(0, 0.02, (n, 3)),
+        gps_sigma=np.full((n, 3), 0.02),
+    )
     result = adjust(problem, BundleOptions(refine_focal=True, refine_k1=True, refine_k2=True))
     assert rms(result.residuals[result.inlier]) < 0.55
     assert ((~result.inlier) & bad).sum() / bad.sum() > 0.95  # planted outliers are rejected ...
@@ -137,8 +151,12 @@ def test_the_first_baseline_sets_the_scale_without_gps(free_model) -> None:
 
 def test_self_calibration_finds_focal_and_distortion(scene) -> None:
     start = scene.camera.replace(fx=1030.0, fy=1030.0, k1=0.0, k2=0.0)
-    rec = reconstruct(scene.features, scene.matches, start,
-                      options=ReconstructionOptions(refine_focal=True, refine_k1=True, refine_k2=True))
+    rec = reconstruct(
+        scene.features,
+        scene.matches,
+        start,
+        options=ReconstructionOptions(refine_focal=True, refine_k1=True, refine_k2=True),
+    )
     assert abs(rec.camera.fx / scene.camera.fx - 1.0) < 0.005
     assert abs(rec.camera.fy / scene.camera.fy - 1.0) < 0.005
     assert abs(rec.camera.k1 - scene.camera.k1) < 0.01
@@ -175,8 +193,9 @@ def test_gcps_give_the_datum_and_checkpoints_measure_it(scene) -> None:
                 observed[names[f]] = px + rng.normal(0, 0.3, 2)
         gcps.append(GroundControlPoint(f"g{g}", truth[g] + rng.normal(0, 0.01, 3), observed))
     gcps.append(GroundControlPoint("tie", None, dict(list(gcps[0].observations.items())[:3])))
-    rec = reconstruct(scene.features, scene.matches, scene.camera, gcps=gcps, checkpoints={"g0", "g1", "g2"},
-                      frame_names=names)
+    rec = reconstruct(
+        scene.features, scene.matches, scene.camera, gcps=gcps, checkpoints={"g0", "g1", "g2"}, frame_names=names
+    )
     report = rec.report["gcps"]
     assert rec.report["datum"] == "similarity_to_gps_and_gcps"
     assert [report[f"g{k}"]["role"] for k in range(4)] == ["checkpoint"] * 3 + ["control"]
@@ -220,5 +239,14 @@ def test_too_little_data_is_an_empty_result_and_misuse_raises(scene) -> None:
     with pytest.raises(ValueError):
         reconstruct(scene.features[:2], {}, scene.camera, gps={7: GpsFix((0.0, 0.0, 0.0))})
     with pytest.raises(ValueError):
-        adjust(BundleProblem(scene.camera, np.zeros((1, 3)), np.zeros((2, 3)), np.zeros((0, 3)),
-                             np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2))))
+        adjust(
+            BundleProblem(
+                scene.camera,
+                np.zeros((1, 3)),
+                np.zeros((2, 3)),
+                np.zeros((0, 3)),
+                np.zeros(0, int),
+                np.zeros(0, int),
+                np.zeros((0, 2)),
+            )
+        )

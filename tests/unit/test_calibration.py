@@ -27,7 +27,7 @@ from workers.algorithms.calibration import (
     plumb_line,
     stereo_calibrate,
 )
-from workers.algorithms.camera import Camera, vector_from_rotation
+from workers.algorithms.geometry import Camera, vector_from_rotation
 
 CAMERAS = {"distort_ideal": LENS, "restore_ideal": LENS_RESTORE}
 NOISE_RMS = 0.2 * math.sqrt(2)  # RMS point error of 0.2 px Gaussian noise per coordinate
@@ -218,8 +218,9 @@ def read_gray(path: Path) -> np.ndarray:
 
 def opencv_calibration(corners: list[np.ndarray]) -> tuple[float, np.ndarray, np.ndarray]:
     obj = board_points((9, 6), 1.0).astype(np.float32)
-    rms, K, dist, _, _ = cv2.calibrateCamera([obj] * len(corners), [c.astype(np.float32) for c in corners],
-                                             (640, 480), None, None)
+    rms, K, dist, _, _ = cv2.calibrateCamera(
+        [obj] * len(corners), [c.astype(np.float32) for c in corners], (640, 480), None, None
+    )
     return rms, K, dist
 
 
@@ -230,8 +231,11 @@ def test_real_chessboards_calibrate_like_opencv(chessboards: dict[str, list[np.n
     ours = calibrate_camera([(obj, c) for c in chessboards[side]], 640, 480)
     rms, K, dist = opencv_calibration(chessboards[side])
     assert abs(ours.rms_px - rms) < 0.1 * rms
-    assert np.allclose([ours.camera.fx, ours.camera.fy, ours.camera.cx, ours.camera.cy],
-                       [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], atol=0.05)
+    assert np.allclose(
+        [ours.camera.fx, ours.camera.fy, ours.camera.cx, ours.camera.cy],
+        [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+        atol=0.05,
+    )
     assert ours.rms_px < 0.3  # OpenCV's sample recipe (11 px sub-pixel window) gets 0.41 px on the left set
     restore = calibrate_camera([(obj, c) for c in chessboards[side]], 640, 480, "restore_ideal")
     assert abs(restore.rms_px - ours.rms_px) < 0.05 * ours.rms_px
@@ -245,13 +249,23 @@ def test_real_chessboards_calibrate_like_opencv(chessboards: dict[str, list[np.n
 def test_real_stereo_rig_agrees_with_opencv_stereo_calibrate(chessboards: dict[str, list[np.ndarray]]) -> None:
     obj = board_points((9, 6), 1.0)
     cams = {side: calibrate_camera([(obj, c) for c in chessboards[side]], 640, 480).camera for side in chessboards}
-    ours = stereo_calibrate(cams["left"], cams["right"], list(zip([obj] * len(PAIRS), chessboards["left"],
-                                                                  chessboards["right"], strict=True)))
+    ours = stereo_calibrate(
+        cams["left"],
+        cams["right"],
+        list(zip([obj] * len(PAIRS), chessboards["left"], chessboards["right"], strict=True)),
+    )
     f32 = [[c.astype(np.float32) for c in chessboards[side]] for side in ("left", "right")]
-    rms, *_, R, T, _, _ = cv2.stereoCalibrate([obj.astype(np.float32)] * len(PAIRS), f32[0], f32[1],
-                                              cams["left"].matrix(), cams["left"].opencv_distortion(),
-                                              cams["right"].matrix(), cams["right"].opencv_distortion(), (640, 480),
-                                              flags=cv2.CALIB_FIX_INTRINSIC)
+    rms, *_, R, T, _, _ = cv2.stereoCalibrate(
+        [obj.astype(np.float32)] * len(PAIRS),
+        f32[0],
+        f32[1],
+        cams["left"].matrix(),
+        cams["left"].opencv_distortion(),
+        cams["right"].matrix(),
+        cams["right"].opencv_distortion(),
+        (640, 480),
+        flags=cv2.CALIB_FIX_INTRINSIC,
+    )
     assert abs(ours.baseline - np.linalg.norm(T)) < 0.01 * np.linalg.norm(T)
     assert math.degrees(np.linalg.norm(vector_from_rotation(ours.R @ R.T))) < 0.05
     assert abs(ours.rms_px - rms) < 0.1 * rms and ours.reversed_views == ()

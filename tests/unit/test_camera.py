@@ -6,11 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.algorithms.camera import Camera, rotation_from_vector, vector_from_rotation, world_to_camera
+from workers.algorithms.geometry import Camera, rotation_from_vector, vector_from_rotation, world_to_camera
 
 # A wide-angle lens with clearly visible barrel distortion (about 40 px at the corners of 2008x1336).
-LENS = dict(width=2008, height=1336, fx=1450.0, fy=1452.0, cx=1010.3, cy=661.8, k1=-0.21, k2=0.09, k3=-0.015,
-            t1=6e-4, t2=-4e-4)
+LENS = dict(
+    width=2008, height=1336, fx=1450.0, fy=1452.0, cx=1010.3, cy=661.8, k1=-0.21, k2=0.09, k3=-0.015, t1=6e-4, t2=-4e-4
+)
 
 
 def frame_pixels(cam: Camera, n: int = 33) -> np.ndarray:
@@ -36,8 +37,12 @@ def test_distort_ideal_equals_opencv_projection() -> None:
     ours = cam.project(points)
     theirs, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), cam.matrix(), cam.opencv_distortion())
     assert np.abs(ours - theirs.reshape(-1, 2)).max() < 1e-9
-    back = cv2.undistortPoints(ours.reshape(-1, 1, 2), cam.matrix(), cam.opencv_distortion(),
-                               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14))
+    back = cv2.undistortPoints(
+        ours.reshape(-1, 1, 2),
+        cam.matrix(),
+        cam.opencv_distortion(),
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14),
+    )
     assert np.abs(cam.pixel_to_normalised(ours) - back.reshape(-1, 2)).max() < 1e-8
 
 
@@ -78,8 +83,9 @@ def test_project_jacobian_matches_finite_differences(convention: str) -> None:
 def test_undistort_maps_equal_opencv() -> None:
     cam = Camera(**{**LENS, "width": 400, "height": 300, "cx": 201.0, "cy": 148.0, "fx": 300.0, "fy": 300.0})
     map_x, map_y = cam.undistort_maps()
-    cv_x, cv_y = cv2.initUndistortRectifyMap(cam.matrix(), cam.opencv_distortion(), None, cam.matrix(),
-                                             (cam.width, cam.height), cv2.CV_32FC1)
+    cv_x, cv_y = cv2.initUndistortRectifyMap(
+        cam.matrix(), cam.opencv_distortion(), None, cam.matrix(), (cam.width, cam.height), cv2.CV_32FC1
+    )
     assert np.abs(map_x - cv_x).max() < 1e-3
     assert np.abs(map_y - cv_y).max() < 1e-3
 
@@ -106,9 +112,14 @@ def test_json_round_trip_and_bad_input() -> None:
     cam = Camera(**LENS, convention="restore_ideal")
     assert Camera.from_json(cam.to_json()) == cam
     good = cam.to_json()
-    for bad, message in [({**good, "fx": -1.0}, "fx"), ({**good, "width": 0}, "width"),
-                         ({**good, "convention": "fisheye"}, "convention"), ({**good, "k1": "x"}, "k1"),
-                         ({**good, "model": "kannala"}, "model"), ([1, 2], "object")]:
+    for bad, message in [
+        ({**good, "fx": -1.0}, "fx"),
+        ({**good, "width": 0}, "width"),
+        ({**good, "convention": "fisheye"}, "convention"),
+        ({**good, "k1": "x"}, "k1"),
+        ({**good, "model": "kannala"}, "model"),
+        ([1, 2], "object"),
+    ]:
         with pytest.raises(ValueError, match=message):
             Camera.from_json(bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="distort_ideal"):

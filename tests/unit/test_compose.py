@@ -33,6 +33,7 @@ def load_compose() -> dict[str, Any]:
 
 # --- helpers ---
 
+
 def services() -> dict[str, dict[str, Any]]:
     return load_compose()["services"]
 
@@ -77,6 +78,7 @@ def build_dockerfile(build: str | dict[str, Any]) -> Path:
 
 
 # --- the tests ---
+
 
 def test_every_built_image_has_a_dockerfile_whose_copy_sources_exist() -> None:
     built = {name: svc["build"] for name, svc in services().items() if "build" in svc}
@@ -130,7 +132,7 @@ def test_gpu_worker_reserves_an_nvidia_device() -> None:
 
 
 def test_settings_read_the_environment_compose_sets(monkeypatch: pytest.MonkeyPatch) -> None:
-    from api.settings import Settings
+    from core.settings import Settings
 
     env = services()["api"]["environment"]
     for key, value in env.items():
@@ -164,7 +166,10 @@ def test_urls_point_at_compose_services_and_agree_everywhere() -> None:
     url = make_url(svcs["api"]["environment"]["DATABASE_URL"])
     pg = svcs["postgres"]["environment"]
     assert (url.username, url.password, url.database) == (
-        pg["POSTGRES_USER"], pg["POSTGRES_PASSWORD"], pg["POSTGRES_DB"])
+        pg["POSTGRES_USER"],
+        pg["POSTGRES_PASSWORD"],
+        pg["POSTGRES_DB"],
+    )
 
 
 def test_database_driver_comes_from_the_postgres_extra() -> None:
@@ -179,7 +184,7 @@ def test_database_driver_comes_from_the_postgres_extra() -> None:
 
 
 def test_image_points_the_settings_at_the_copied_viewer() -> None:
-    from api.settings import Settings
+    from core.settings import Settings
 
     # A regular install puts api/ in site-packages, where the default web_dir (next to it) is empty.
     assert "web_dir" in Settings.model_fields

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.algorithms.crack_geometry import (
+from workers.algorithms.cracks import (
     Crack,
     crack_coverage,
     darkening,
@@ -34,11 +34,11 @@ def band_mask(points: np.ndarray, width: float, shape: tuple[int, int] = SHAPE) 
     for a, b in zip(p[:-1], p[1:], strict=True):
         lo = np.maximum(np.floor(np.minimum(a, b) - r - 1).astype(int), 0)
         hi = np.minimum(np.ceil(np.maximum(a, b) + r + 1).astype(int), [shape[1] - 1, shape[0] - 1])
-        ys, xs = np.mgrid[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]
+        ys, xs = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
         q = np.stack([xs, ys], axis=-1).astype(np.float64)
         d = b - a
         t = np.clip(((q - a) @ d) / max(float(d @ d), 1e-12), 0, 1)
-        out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] |= np.linalg.norm(q - (a + t[..., None] * d), axis=-1) < r
+        out[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1] |= np.linalg.norm(q - (a + t[..., None] * d), axis=-1) < r
     return out
 
 
@@ -112,8 +112,10 @@ def test_skeleton_is_thin_and_keeps_components() -> None:
 
 def test_branched_crack_length_is_the_sum_of_its_arms() -> None:
     centre = np.array([200.3, 200.3])
-    arms = [segment(tuple(centre + 50 * np.array([np.cos(np.radians(a)), -np.sin(np.radians(a))])), 100, a)
-            for a in (10, 130, 250)]
+    arms = [
+        segment(tuple(centre + 50 * np.array([np.cos(np.radians(a)), -np.sin(np.radians(a))])), 100, a)
+        for a in (10, 130, 250)
+    ]
     mask = np.zeros(SHAPE, dtype=bool)
     for arm in arms:
         mask |= band_mask(arm, 3)

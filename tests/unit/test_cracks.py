@@ -12,7 +12,6 @@ from scipy import ndimage as ndi
 
 from tests.conftest import shared_data
 from tests.unit.test_crack_geometry import band_mask
-from workers.algorithms.crack_geometry import darkening
 from workers.algorithms.cracks import (
     FEATURE_VERSION,
     NET_LAYERS,
@@ -22,6 +21,7 @@ from workers.algorithms.cracks import (
     avg_pool2,
     conv2d,
     crack_probability,
+    darkening,
     detect_cracks,
     hysteresis_threshold,
     load_crack_model,
@@ -39,8 +39,10 @@ EIGHT = np.ones((3, 3))
 def textured_surface(rng: np.random.Generator, shading: float = 0.35) -> np.ndarray:
     """(H, W) float64 grey surface: grain at three scales under a linear light falloff in a random direction
     (light at a low angle) and a broad hot spot."""
-    grain = sum(a * np.sqrt(s) * cv2.GaussianBlur(rng.standard_normal((H, W)).astype(np.float32), (0, 0), s)
-                for s, a in ((1, 15.0), (3, 12.0), (10, 15.0)))
+    grain = sum(
+        a * np.sqrt(s) * cv2.GaussianBlur(rng.standard_normal((H, W)).astype(np.float32), (0, 0), s)
+        for s, a in ((1, 15.0), (3, 12.0), (10, 15.0))
+    )
     yy, xx = np.mgrid[0:H, 0:W]
     a = rng.uniform(0, 2 * np.pi)
     ramp = 1 + shading * ((xx - W / 2) * np.cos(a) + (yy - H / 2) * np.sin(a)) / (W / 2)
@@ -58,8 +60,9 @@ def random_crack(rng: np.random.Generator, length: float, step: float = 4.0) -> 
     return np.array(points)
 
 
-def cracked_scene(seed: int, widths: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
-                  ) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+def cracked_scene(
+    seed: int, widths: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
+) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
     """A shaded textured coating with one crack per width, 80-200 px long, at least 15 px apart.
 
     Returns
@@ -126,7 +129,7 @@ def test_measured_length_of_detected_cracks(seed: int) -> None:
     """End to end: detection then measurement. The detected cracks lose a little at their tips (total
     0.94-0.99 of the drawn length over seeds 1-10). Widths are not asserted: the CrackForest-trained
     detector draws hairline cracks ~4 px wide, as that data set's ground truth does."""
-    from workers.algorithms.crack_geometry import measure_cracks
+    from workers.algorithms.cracks import measure_cracks
 
     _, lines, _, found = detected_scene(seed)
     cracks = measure_cracks(found, 0.05)
@@ -215,9 +218,17 @@ def test_conv2d_matches_a_per_channel_correlation(k: int, dilation: int) -> None
     x = rng.standard_normal((13, 17, 3)).astype(np.float32)
     weight = rng.standard_normal((k, k, 3, 2)).astype(np.float32)
     bias = np.array([0.5, -1.0], np.float32)
-    expected = np.stack([bias[o] + sum(ndi.correlate(x[..., i].astype(np.float64),
-                                                     dilated(weight[:, :, i, o], dilation), mode="constant")
-                                       for i in range(3)) for o in range(2)], axis=-1)
+    expected = np.stack(
+        [
+            bias[o]
+            + sum(
+                ndi.correlate(x[..., i].astype(np.float64), dilated(weight[:, :, i, o], dilation), mode="constant")
+                for i in range(3)
+            )
+            for o in range(2)
+        ],
+        axis=-1,
+    )
     np.testing.assert_allclose(conv2d(x, weight, bias, dilation), expected, atol=1e-4)
     with pytest.raises(ValueError):
         conv2d(x[..., :2], weight, bias)
@@ -235,12 +246,28 @@ def test_pooling_and_upsampling_follow_torch_conventions() -> None:
 def random_net(rng: np.random.Generator, n_features: int = 5, widths: tuple[int, int, int] = (4, 6, 3)) -> CrackNet:
     """A :class:`CrackNet` of random weights and the layer shapes that the training script builds."""
     a, b, c = widths
-    shapes = {"enc0": (n_features, a), "enc1": (a, a), "half0": (a, b), "half1": (b, b), "quarter0": (b, b),
-              "quarter1": (b, b), "quarter2": (b, b), "up_half": (2 * b, b), "up_full": (a + b, c), "head": (c, 1)}
-    layers = {name: (rng.normal(0, 0.5, (k, k, *shapes[name])).astype(np.float32),
-                     rng.normal(0, 0.1, shapes[name][1]).astype(np.float32)) for name, k, _ in NET_LAYERS}
-    return CrackNet(rng.normal(0, 1, n_features).astype(np.float32), rng.uniform(0.5, 2, n_features).astype(np.float32),
-                    layers)
+    shapes = {
+        "enc0": (n_features, a),
+        "enc1": (a, a),
+        "half0": (a, b),
+        "half1": (b, b),
+        "quarter0": (b, b),
+        "quarter1": (b, b),
+        "quarter2": (b, b),
+        "up_half": (2 * b, b),
+        "up_full": (a + b, c),
+        "head": (c, 1),
+    }
+    layers = {
+        name: (
+            rng.normal(0, 0.5, (k, k, *shapes[name])).astype(np.float32),
+            rng.normal(0, 0.1, shapes[name][1]).astype(np.float32),
+        )
+        for name, k, _ in NET_LAYERS
+    }
+    return CrackNet(
+        rng.normal(0, 1, n_features).astype(np.float32), rng.uniform(0.5, 2, n_features).astype(np.float32), layers
+    )
 
 
 def test_network_forward_pass_is_translation_equivariant_and_local() -> None:

@@ -9,9 +9,9 @@ import rasterio
 
 from tests.conftest import shared_data
 from tests.terrain_scenes import TerrainFlight, make_terrain_flight
-from workers.algorithms.camera import Camera
+from workers.algorithms.geometry import Camera
 from workers.pipeline import process_directory
-from workers.workspace import JobWorkspace, read_json
+from workers.workspace import JobWorkspace
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,7 @@ def test_every_camera_is_registered_where_it_was(ortho) -> None:
     tri = report["triangulation"]
     assert tri["registered"] == tri["total"] == 12 and tri["not_registered"] == []
     assert tri["rms_px"] < 0.5
-    cams = read_json(ws.cameras_file())
+    cams = ws.load_cameras()
     world = cams["world"]
     shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1], 0.0])
     errors = [np.linalg.norm(np.array(p["C"]) + shift - flight.centres[int(k)]) for k, p in cams["poses"].items()]
@@ -44,7 +44,7 @@ def test_every_camera_is_registered_where_it_was(ortho) -> None:
 def test_true_ground_reprojects_where_the_photos_show_it(ortho) -> None:
     """Ground points traced through the true cameras land within a pixel in the adjusted ones."""
     flight, _, ws = ortho
-    cams = read_json(ws.cameras_file())
+    cams = ws.load_cameras()
     camera = Camera.from_json(cams["camera"])
     world = cams["world"]
     shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1], 0.0])
@@ -63,18 +63,22 @@ def test_true_ground_reprojects_where_the_photos_show_it(ortho) -> None:
 def test_orthomosaic_shows_the_ground_at_its_map_position(ortho) -> None:
     """Where the terrain is at the ortho plane's height, every mosaic pixel shows the texture of that spot."""
     flight, report, ws = ortho
-    z0 = read_json(ws.alignment_file())["ground_z"]
-    with rasterio.open(ws.mosaic_file()) as src:
+    z0 = ws.load_alignment()["ground_z"]
+    with rasterio.open(ws.mosaic_path()) as src:
         assert src.crs.to_epsg() == flight.epsg
         rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
         mask = src.dataset_mask() > 0
-        rows, cols = np.mgrid[0:src.height, 0:src.width]
+        rows, cols = np.mgrid[0 : src.height, 0 : src.width]
         east, north = rasterio.transform.xy(src.transform, rows.ravel(), cols.ravel())
     x = np.asarray(east) - flight.origin_utm[0]
     y = np.asarray(north) - flight.origin_utm[1]
     col, row = flight.texture_px(x, y)
-    expected = cv2.remap(flight.texture, col.reshape(rows.shape).astype(np.float32),
-                         row.reshape(rows.shape).astype(np.float32), cv2.INTER_LINEAR)[..., ::-1].astype(np.float32)
+    expected = cv2.remap(
+        flight.texture,
+        col.reshape(rows.shape).astype(np.float32),
+        row.reshape(rows.shape).astype(np.float32),
+        cv2.INTER_LINEAR,
+    )[..., ::-1].astype(np.float32)
     level = (np.abs(flight.height(x, y) - z0) < 0.15).reshape(rows.shape)
     inner = (cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & level
     assert inner.sum() > 2000

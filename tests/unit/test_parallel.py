@@ -12,8 +12,9 @@ from workers.parallel import ordered_map, thread_count
 
 def test_results_keep_their_order_and_progress_counts_up() -> None:
     seen: list[tuple[float, str]] = []
-    out = ordered_map(lambda x: (time.sleep(0.01 * (5 - x)), x * x)[1], list(range(5)), 2,
-                      lambda f, d: seen.append((f, d)), "frame")
+    out = ordered_map(
+        lambda x: (time.sleep(0.01 * (5 - x)), x * x)[1], list(range(5)), 2, lambda f, d: seen.append((f, d)), "frame"
+    )
     assert out == [0, 1, 4, 9, 16]
     assert [d for _, d in seen] == [f"frame {k}/5" for k in range(1, 6)] and seen[-1][0] == 1.0
     assert thread_count(3) == 3 and thread_count(0) >= 1

@@ -11,10 +11,10 @@ import pytest
 import rasterio
 
 from tests.scenes import SyntheticFlight, make_flight
-from workers.algorithms.alignment import apply_homography
-from workers.algorithms.georef import fit_similarity
+from workers.algorithms.geometry import fit_similarity
+from workers.algorithms.mosaic import apply_homography
 from workers.pipeline import process_directory
-from workers.workspace import JobWorkspace, read_json
+from workers.workspace import JobWorkspace
 
 
 def frame_corners_cv(flight: SyntheticFlight) -> np.ndarray:
@@ -26,15 +26,23 @@ def frame_corners_cv(flight: SyntheticFlight) -> np.ndarray:
 def tilted(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, dict, JobWorkspace]:
     """Two flight lines, rotated, rescaled, mildly tilted frames, no GPS: exhaustive matching."""
     root = tmp_path_factory.mktemp("tilted")
-    flight = make_flight(root / "frames", n_frames=10, layout="grid", rotation_deg=12, scale_jitter=0.08,
-                         perspective=0.03, gps=False, seed=11)
+    flight = make_flight(
+        root / "frames",
+        n_frames=10,
+        layout="grid",
+        rotation_deg=12,
+        scale_jitter=0.08,
+        perspective=0.03,
+        gps=False,
+        seed=11,
+    )
     report = process_directory(root / "frames", root / "job", {"working_max_px": 1024})
     return flight, report, JobWorkspace(root / "job")
 
 
 def test_frame_corners_within_one_pixel_of_truth(tilted) -> None:
     flight, report, ws = tilted
-    assert len(read_json(ws.alignment_file())["homographies"]) == 10 and not report["frames_rejected"]
+    assert len(ws.load_alignment()["homographies"]) == 10 and not report["frames_rejected"]
     errors = corner_errors(flight, ws)  # the mosaic plane is the reference frame's: truth there is inv(G_ref) G_k
     assert errors.max() < 1.0, f"worst corner {errors.max():.3f} px"
 
@@ -52,17 +60,17 @@ def test_outputs_are_valid_cogs(tilted, nadir) -> None:
     from rio_cogeo.cogeo import cog_validate
 
     for _, _, ws in (tilted, nadir):
-        valid, errors, _warnings = cog_validate(str(ws.mosaic_file()), quiet=True)
+        valid, errors, _warnings = cog_validate(str(ws.mosaic_path()), quiet=True)
         assert valid, errors
 
 
 def test_mosaic_without_gps_is_a_pixel_raster(tilted) -> None:
     _, report, ws = tilted
-    with rasterio.open(ws.mosaic_file()) as src:
+    with rasterio.open(ws.mosaic_path()) as src:
         assert src.crs is None
         assert (src.width, src.height) == (report["mosaic"]["width"], report["mosaic"]["height"])
         assert src.overviews(1)
-    assert not ws.footprints_file().exists()  # no map coordinates to draw footprints in
+    assert "footprints.geojson" not in ws.outputs()  # no map coordinates to draw footprints in
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +84,7 @@ def nadir(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, di
 def test_gps_flight_is_placed_within_one_gsd(nadir) -> None:
     flight, report, ws = nadir
     assert report["georeferenced"] and report["crs"] == f"EPSG:{flight.epsg}"
-    geo, align = read_json(ws.georef_file()), read_json(ws.alignment_file())
+    geo, align = ws.load_georef(), ws.load_alignment()
     plane_to_map = np.array(geo["plane_to_map"])
     errors = []
     for k, H in align["homographies"].items():
@@ -93,10 +101,10 @@ def test_gps_flight_is_placed_within_one_gsd(nadir) -> None:
 def test_cog_pixels_show_the_ground_at_their_map_position(nadir) -> None:
     """Every mosaic pixel, taken to the texture through its map coordinates, shows the same colour."""
     flight, _, ws = nadir
-    with rasterio.open(ws.mosaic_file()) as src:
+    with rasterio.open(ws.mosaic_path()) as src:
         rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
         mask = src.dataset_mask() > 0
-        rows, cols = np.mgrid[0:src.height, 0:src.width]
+        rows, cols = np.mgrid[0 : src.height, 0 : src.width]
         east, north = rasterio.transform.xy(src.transform, rows.ravel(), cols.ravel())
     en = np.column_stack([east, north, np.ones(len(east))])
     tex = en @ np.linalg.inv(flight.texture_to_utm).T
@@ -111,24 +119,30 @@ def test_cog_pixels_show_the_ground_at_their_map_position(nadir) -> None:
 
 def test_report_lists_what_a_user_needs(nadir) -> None:
     flight, report, ws = nadir
-    on_disk = json.loads(ws.report_file().read_text())
+    on_disk = ws.load_report()
     assert on_disk == json.loads(json.dumps(report))
     assert len(report["frames_used"]) == 8 and report["frames_rejected"] == []
-    assert set(report["stage_seconds"]) >= {"load_images", "detect_features", "match_features",
-                                             "align_frames", "georeference", "compose_mosaic"}
+    assert set(report["stage_seconds"]) >= {
+        "load_images",
+        "detect_features",
+        "match_features",
+        "align_frames",
+        "georeference",
+        "compose_mosaic",
+    }
     footprint = report["mosaic"]["footprint"]
     assert footprint["type"] == "MultiPolygon" and footprint["coordinates"]
     lon, lat = np.array(footprint["coordinates"][0][0]).T
     for glat, glon, _ in flight.gps:
         assert lon.min() < glon < lon.max() and lat.min() < glat < lat.max()
-    features = json.loads(ws.footprints_file().read_text())["features"]
+    features = ws.load_footprints()["features"]
     assert [f["properties"]["name"] for f in features] == [p.name for p in flight.paths]
 
 
 def corner_errors(flight: SyntheticFlight, ws: JobWorkspace) -> np.ndarray:
     """Every frame corner's distance to its truth in the reference frame's plane, after removing the
     global similarity, px."""
-    align = read_json(ws.alignment_file())
+    align = ws.load_alignment()
     homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
     ref = np.linalg.inv(flight.homographies[align["reference"]])
     corners = frame_corners_cv(flight)
@@ -141,8 +155,9 @@ def corner_errors(flight: SyntheticFlight, ws: JobWorkspace) -> np.ndarray:
 def test_harris_ncc_aligns_an_aerial_strip(tmp_path: Path) -> None:
     """Frames that keep their orientation and scale (a multi-lens aerial strip): Harris + NCC."""
     flight = make_flight(tmp_path / "frames", n_frames=6, rotation_deg=1.5, scale_jitter=0.02, gps=True, seed=21)
-    report = process_directory(tmp_path / "frames", tmp_path / "job",
-                               {"working_max_px": 1024, "feature_type": "harris_ncc"})
+    report = process_directory(
+        tmp_path / "frames", tmp_path / "job", {"working_max_px": 1024, "feature_type": "harris_ncc"}
+    )
     ws = JobWorkspace(tmp_path / "job")
     assert ws.load_stage_report("detect_features")["detector"] == "gpu_kernels-harris_ncc"
     assert len(report["frames_used"]) == 6 and report["georeferenced"]
@@ -156,8 +171,9 @@ def test_gpu_sift_pipeline_matches_the_truth(tmp_path: Path) -> None:
 
     if not cuda_available():
         pytest.skip("needs CuPy and a CUDA device")
-    flight = make_flight(tmp_path / "frames", n_frames=8, layout="grid", rotation_deg=12, perspective=0.02,
-                         gps=False, seed=11)
+    flight = make_flight(
+        tmp_path / "frames", n_frames=8, layout="grid", rotation_deg=12, perspective=0.02, gps=False, seed=11
+    )
     report = process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 1024, "device": "cuda"})
     ws = JobWorkspace(tmp_path / "job")
     assert ws.load_stage_report("detect_features")["device"] == "cuda"

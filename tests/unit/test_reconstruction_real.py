@@ -18,12 +18,17 @@ import numpy as np
 import pytest
 
 from tests.conftest import shared_data
-from workers.algorithms.camera import Camera
-from workers.algorithms.gcp import LocalFrame, parse_opensfm_gcps, scale_observations
-from workers.algorithms.georef import lonlat_to_utm, utm_epsg
-from workers.algorithms.matching import detect_sift, match_ratio
-from workers.algorithms.pairing import candidate_pairs
-from workers.algorithms.reconstruction import GpsFix, Reconstruction, ReconstructionOptions, reconstruct
+from workers.algorithms.geometry import Camera, lonlat_to_utm, utm_epsg
+from workers.algorithms.mosaic import candidate_pairs, detect_sift, match_ratio
+from workers.algorithms.sfm import (
+    GpsFix,
+    LocalFrame,
+    Reconstruction,
+    ReconstructionOptions,
+    parse_opensfm_gcps,
+    reconstruct,
+    scale_observations,
+)
 from workers.image_meta import inspect_image
 
 pytestmark = pytest.mark.realdata
@@ -42,8 +47,13 @@ def load_flight(folder: Path, max_side: int, max_features: int) -> dict:
         xy, desc = detect_sift(gray, max_features)
         features.append(xy.astype(np.float64))
         descriptors.append(desc)
-    return {"names": [p.name for p in paths], "metas": metas, "size": (gray.shape[1], gray.shape[0]),
-            "features": features, "descriptors": descriptors}
+    return {
+        "names": [p.name for p in paths],
+        "metas": metas,
+        "size": (gray.shape[1], gray.shape[0]),
+        "features": features,
+        "descriptors": descriptors,
+    }
 
 
 def local_gps(metas: list[dict]) -> tuple[LocalFrame, np.ndarray]:
@@ -115,8 +125,15 @@ def berlin() -> tuple[dict, Reconstruction]:
     matches = match_pairs(flight, [(0, 1), (0, 2), (1, 2)])
     gps = {k: GpsFix(tuple(enu[k]), sigma_h=5.0, sigma_v=100.0) for k in range(3)}
     # the sample's GCP positions agree with each other only to metres: say so
-    rec = reconstruct(flight["features"], matches, exif_camera(flight), gps=gps, gcps=gcps,
-                      frame_names=flight["names"], options=ReconstructionOptions(gcp_sigma_m=1.0))
+    rec = reconstruct(
+        flight["features"],
+        matches,
+        exif_camera(flight),
+        gps=gps,
+        gcps=gcps,
+        frame_names=flight["names"],
+        options=ReconstructionOptions(gcp_sigma_m=1.0),
+    )
     return flight, rec
 
 

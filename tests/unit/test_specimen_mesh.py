@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from tests.crack_scenes import CurvedPanel, look_at, oblique_pose
-from workers.algorithms.camera import Camera
-from workers.algorithms.mesh import (
+from workers.algorithms.geometry import Camera
+from workers.algorithms.specimen import (
     Mesh,
     MeshFormatError,
     best_fit_plane,
@@ -19,13 +19,7 @@ from workers.algorithms.mesh import (
     plane_through,
     read_mesh,
 )
-from workers.algorithms.specimen_surface import (
-    _sample,
-    mesh_surface,
-    photo_depth,
-    plate_surface,
-    rectification_maps,
-)
+from workers.algorithms.specimen.surface import _sample, mesh_surface, photo_depth, plate_surface, rectification_maps
 
 # a unit square in two triangles and a triangle above it, with a quad for the fan
 VERTICES = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0], [2, 2, 5]], dtype=np.float64)
@@ -39,34 +33,56 @@ def obj_text() -> bytes:
 
 
 def ply_ascii() -> bytes:
-    header = ["ply", "format ascii 1.0", "comment made by hand", f"element vertex {len(VERTICES)}",
-              "property float x", "property float y", "property float z", "property uchar red",
-              f"element face {len(FACES)}", "property list uchar int vertex_indices", "end_header"]
+    header = [
+        "ply",
+        "format ascii 1.0",
+        "comment made by hand",
+        f"element vertex {len(VERTICES)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "property uchar red",
+        f"element face {len(FACES)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     body = [f"{x} {y} {z} 255" for x, y, z in VERTICES] + [f"{len(f)} {' '.join(map(str, f))}" for f in FACES]
     return ("\n".join(header + body) + "\n").encode()
 
 
 def ply_binary(order: str) -> bytes:
     name = "binary_little_endian" if order == "<" else "binary_big_endian"
-    header = ["ply", f"format {name} 1.0", f"element vertex {len(VERTICES)}", "property double x",
-              "property double y", "property double z", f"element face {len(FACES)}",
-              "property list uchar uint vertex_indices", "end_header"]
+    header = [
+        "ply",
+        f"format {name} 1.0",
+        f"element vertex {len(VERTICES)}",
+        "property double x",
+        "property double y",
+        "property double z",
+        f"element face {len(FACES)}",
+        "property list uchar uint vertex_indices",
+        "end_header",
+    ]
     body = b"".join(struct.pack(order + "3d", *v) for v in VERTICES)
     body += b"".join(struct.pack(order + "B" + "I" * len(f), len(f), *f) for f in FACES)
     return ("\n".join(header) + "\n").encode() + body
 
 
 def stl_ascii() -> bytes:
-    facets = "".join("facet normal 0 0 1\n outer loop\n" + "".join(f"  vertex {x} {y} {z}\n" for x, y, z in
-                                                                    VERTICES[t]) + " endloop\nendfacet\n"
-                     for t in TRIANGLES)
+    facets = "".join(
+        "facet normal 0 0 1\n outer loop\n"
+        + "".join(f"  vertex {x} {y} {z}\n" for x, y, z in VERTICES[t])
+        + " endloop\nendfacet\n"
+        for t in TRIANGLES
+    )
     return f"solid test\n{facets}endsolid test\n".encode()
 
 
 def stl_binary() -> bytes:
     header = b"solid but binary".ljust(80, b" ")
-    records = b"".join(struct.pack("<3f", 0, 0, 1) + struct.pack("<9f", *VERTICES[t].ravel()) + b"\0\0"
-                       for t in TRIANGLES)
+    records = b"".join(
+        struct.pack("<3f", 0, 0, 1) + struct.pack("<9f", *VERTICES[t].ravel()) + b"\0\0" for t in TRIANGLES
+    )
     return header + struct.pack("<I", len(TRIANGLES)) + records
 
 
@@ -75,27 +91,38 @@ def triangle_set(mesh: Mesh) -> set[tuple[tuple[float, ...], ...]]:
     return {tuple(sorted(map(tuple, corners))) for corners in mesh.corners().round(6)}
 
 
-@pytest.mark.parametrize(("name", "make"), [
-    ("m.obj", obj_text), ("m.ply", ply_ascii), ("m.ply", lambda: ply_binary("<")), ("m.ply", lambda: ply_binary(">")),
-    ("m.stl", stl_ascii), ("M.STL", stl_binary),
-], ids=["obj", "ply-ascii", "ply-le", "ply-be", "stl-ascii", "stl-binary"])
+@pytest.mark.parametrize(
+    ("name", "make"),
+    [
+        ("m.obj", obj_text),
+        ("m.ply", ply_ascii),
+        ("m.ply", lambda: ply_binary("<")),
+        ("m.ply", lambda: ply_binary(">")),
+        ("m.stl", stl_ascii),
+        ("M.STL", stl_binary),
+    ],
+    ids=["obj", "ply-ascii", "ply-le", "ply-be", "stl-ascii", "stl-binary"],
+)
 def test_every_format_reads_the_same_triangles(name: str, make) -> None:
     mesh = read_mesh(make(), name)
     assert triangle_set(mesh) == triangle_set(Mesh(VERTICES, TRIANGLES))
     assert np.isclose(mesh.areas().sum(), 100.0 + 0.5 * 10 * np.hypot(2, 5))
 
 
-@pytest.mark.parametrize(("name", "data", "fragment"), [
-    ("m.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "not a valid OBJ file"),
-    ("m.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 3\n", "refers to a vertex that does not exist"),
-    ("m.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "zero area"),
-    ("m.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no triangles"),
-    ("m.obj", b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "not finite"),
-    ("m.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n", "'vertex' and 'face'"),
-    ("m.ply", b"PK\x03\x04zip", "no PLY header"),
-    ("m.stl", b"\x00" * 84 + b"\x01" * 7, "neither a binary STL"),
-    ("m.step", b"ISO-10303-21;", "unknown model format"),
-])
+@pytest.mark.parametrize(
+    ("name", "data", "fragment"),
+    [
+        ("m.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "not a valid OBJ file"),
+        ("m.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 3\n", "refers to a vertex that does not exist"),
+        ("m.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "zero area"),
+        ("m.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no triangles"),
+        ("m.obj", b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "not finite"),
+        ("m.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n", "'vertex' and 'face'"),
+        ("m.ply", b"PK\x03\x04zip", "no PLY header"),
+        ("m.stl", b"\x00" * 84 + b"\x01" * 7, "neither a binary STL"),
+        ("m.step", b"ISO-10303-21;", "unknown model format"),
+    ],
+)
 def test_malformed_models_are_refused_saying_why(name: str, data: bytes, fragment: str) -> None:
     with pytest.raises(MeshFormatError, match=fragment.replace("(", r"\(")):
         read_mesh(data, name)

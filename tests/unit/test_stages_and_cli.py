@@ -24,12 +24,12 @@ def test_a_finished_stage_is_not_run_again(tmp_path: Path) -> None:
     make_flight(tmp_path / "frames", n_frames=3, frame_size=(320, 240), seed=1)
     process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 320})
     ws = JobWorkspace(tmp_path / "job")
-    mtime = ws.mosaic_file().stat().st_mtime_ns
+    mtime = ws.mosaic_path().stat().st_mtime_ns
     report = run_stage(ws, "mosaic", "compose_mosaic")
-    assert ws.mosaic_file().stat().st_mtime_ns == mtime and report == ws.load_stage_report("compose_mosaic")
+    assert ws.mosaic_path().stat().st_mtime_ns == mtime and report == ws.load_stage_report("compose_mosaic")
     rerun = run_stage(ws, "mosaic", "compose_mosaic", rerun=True)
-    assert ws.mosaic_file().stat().st_mtime_ns != mtime and rerun["width"] == report["width"]
-    assert not list(ws.root.rglob(".*.tmp")) and not (ws.root / "mosaic.tmp.tif").exists()
+    assert ws.mosaic_path().stat().st_mtime_ns != mtime and rerun["width"] == report["width"]
+    assert not list(ws.root.rglob(".*.tmp")) and not ws.mosaic_scratch_path().exists()
 
 
 def test_cli_lists_subcommands_and_processes_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -59,12 +59,12 @@ def test_the_mosaic_does_not_depend_on_the_window_size(tmp_path: Path) -> None:
     make_flight(tmp_path / "frames", n_frames=4, frame_size=(400, 300), seed=9)
     process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 400, "block_px": 1024})
     ws = JobWorkspace(tmp_path / "job")
-    with rasterio.open(ws.mosaic_file()) as src:
+    with rasterio.open(ws.mosaic_path()) as src:
         whole, whole_mask = src.read(), src.dataset_mask()
     config = ws.load_config()
     ws.save_config({**config, "block_px": 256})
     run_stage(ws, "mosaic", "compose_mosaic", rerun=True)
-    with rasterio.open(ws.mosaic_file()) as src:
+    with rasterio.open(ws.mosaic_path()) as src:
         assert src.width > 256 and src.height > 256  # several windows in each direction
         assert np.array_equal(src.dataset_mask(), whole_mask)
         assert np.abs(src.read().astype(int) - whole).max() <= 1  # float rounding only

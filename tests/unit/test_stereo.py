@@ -7,13 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from workers.algorithms.camera import Camera, rotation_from_vector, vector_from_rotation
-from workers.algorithms.stereo import StereoRig, measure, triangulate_midpoint
+from workers.algorithms.calibration import StereoRig, measure, triangulate_midpoint
+from workers.algorithms.geometry import Camera, rotation_from_vector, vector_from_rotation
 
 # Two different distorted lenses, one per convention, 150 mm apart and toed in by 3 degrees.
 LEFT = Camera(1280, 960, fx=1000.0, fy=1002.0, cx=641.0, cy=478.5, k1=-0.22, k2=0.06, t1=4e-4)
-RIGHT = Camera(1280, 960, fx=985.0, fy=984.0, cx=633.0, cy=487.0, k1=0.2, k2=0.02, t2=-3e-4,
-               convention="restore_ideal")
+RIGHT = Camera(1280, 960, fx=985.0, fy=984.0, cx=633.0, cy=487.0, k1=0.2, k2=0.02, t2=-3e-4, convention="restore_ideal")
 RIG = StereoRig(LEFT, RIGHT, rotation_from_vector(np.radians([0.5, -3.0, 0.2])), np.array([-150.0, 1.5, 3.0]))
 
 
@@ -112,16 +111,19 @@ def test_rig_json_round_trip() -> None:
     assert abs(back.baseline - np.linalg.norm(RIG.T)) < 1e-12
 
 
-@pytest.mark.parametrize(("change", "message"), [
-    ({"R": np.diag([1.0, 1.0, -1.0]).tolist()}, "R must be a rotation matrix"),
-    ({"R": [[1, 0], [0, 1]]}, r"R must be finite numbers of shape \(3, 3\)"),
-    ({"T": [0.0, 0.0, 0.0]}, "T must be non-zero"),
-    ({"T": [1.0, "a", 2.0]}, "T must be numbers"),
-    ({"T": [1.0, float("nan"), 2.0]}, "T must be finite"),
-    ({"covariance": np.eye(5).tolist()}, r"covariance must be finite numbers of shape \(6, 6\)"),
-    ({"covariance": (np.eye(6) - 2 * np.eye(6)).tolist()}, "non-negative diagonal"),
-    ({"left": {"width": 10}}, "camera"),
-])
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"R": np.diag([1.0, 1.0, -1.0]).tolist()}, "R must be a rotation matrix"),
+        ({"R": [[1, 0], [0, 1]]}, r"R must be finite numbers of shape \(3, 3\)"),
+        ({"T": [0.0, 0.0, 0.0]}, "T must be non-zero"),
+        ({"T": [1.0, "a", 2.0]}, "T must be numbers"),
+        ({"T": [1.0, float("nan"), 2.0]}, "T must be finite"),
+        ({"covariance": np.eye(5).tolist()}, r"covariance must be finite numbers of shape \(6, 6\)"),
+        ({"covariance": (np.eye(6) - 2 * np.eye(6)).tolist()}, "non-negative diagonal"),
+        ({"left": {"width": 10}}, "camera"),
+    ],
+)
 def test_rig_from_json_rejects_bad_input(change: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         StereoRig.from_json({**RIG.to_json(), **change})

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.algorithms.tiling import map_in_tiles
+from workers.algorithms.cracks import map_in_tiles
 
 
 def blur(image: np.ndarray) -> np.ndarray:

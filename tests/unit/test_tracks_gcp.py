@@ -8,11 +8,18 @@ import numpy as np
 import pytest
 
 from tests.sfm_scenes import make_sfm_scene
-from workers.algorithms.camera import rotation_from_vector
-from workers.algorithms.datum import line_similarity, refine_similarity, similarity_3d
-from workers.algorithms.gcp import LocalFrame, parse_gcp_list, parse_opensfm_gcps, scale_observations
-from workers.algorithms.georef import lonlat_to_utm
-from workers.algorithms.tracks import build_tracks, verify_pairs
+from workers.algorithms.geometry import lonlat_to_utm, rotation_from_vector
+from workers.algorithms.sfm import (
+    LocalFrame,
+    build_tracks,
+    line_similarity,
+    parse_gcp_list,
+    parse_opensfm_gcps,
+    refine_similarity,
+    scale_observations,
+    similarity_3d,
+    verify_pairs,
+)
 
 FRAME = LocalFrame(32632, 500_000.0, 5_000_000.0)  # UTM 32N, near lon 9, lat 45
 
@@ -29,8 +36,14 @@ def test_tracks_join_chains_of_matches_and_drop_conflicts() -> None:
         (2, 3): (idx(8, 2), idx(1, 1)),  # 3:1 joins 2:8 and 2:2 -> two features of frame 2: conflict
     }
     tracks = build_tracks(matches)
-    found = {tuple(sorted(zip(tracks.frame[tracks.track == t].tolist(), tracks.feature[tracks.track == t].tolist(),
-                              strict=True))) for t in range(tracks.n_tracks)}
+    found = {
+        tuple(
+            sorted(
+                zip(tracks.frame[tracks.track == t].tolist(), tracks.feature[tracks.track == t].tolist(), strict=True)
+            )
+        )
+        for t in range(tracks.n_tracks)
+    }
     assert found == {((0, 0), (1, 3), (2, 9)), ((0, 5), (1, 7))}
     assert sorted(tracks.lengths().tolist()) == [2, 3]
     assert build_tracks(matches, min_length=3).n_tracks == 1
@@ -93,16 +106,19 @@ def test_odm_gcp_list_in_lonlat_and_proj_strings() -> None:
         assert np.allclose(gcp.position[:2], expected, atol=1e-3) and gcp.position[2] == 12.0
 
 
-@pytest.mark.parametrize("text, line", [
-    ("", 1),
-    ("NOT A CRS\n1 2 3 4 5 a.jpg\n", 1),
-    ("WGS84 UTM 61N\n", 1),
-    ("EPSG:32632\n1 2 3 4 5 a.jpg\n1 2 3 4 a.jpg\n", 3),
-    ("EPSG:32632\n\n1 2 x 4 5 a.jpg\n", 3),
-    ("EPSG:32632\n1 2 3 4 5 a.jpg p\n1 2 3 6 7 a.jpg p\n", 3),  # observed twice in one image
-    ("EPSG:32632\n1 2 3 4 5 a.jpg p\n1 2 4 6 7 b.jpg p\n", 3),  # same name, other coordinates
-    ("EPSG:32632\n1 2 3 -4 5 a.jpg\n", 2),
-])
+@pytest.mark.parametrize(
+    "text, line",
+    [
+        ("", 1),
+        ("NOT A CRS\n1 2 3 4 5 a.jpg\n", 1),
+        ("WGS84 UTM 61N\n", 1),
+        ("EPSG:32632\n1 2 3 4 5 a.jpg\n1 2 3 4 a.jpg\n", 3),
+        ("EPSG:32632\n\n1 2 x 4 5 a.jpg\n", 3),
+        ("EPSG:32632\n1 2 3 4 5 a.jpg p\n1 2 3 6 7 a.jpg p\n", 3),  # observed twice in one image
+        ("EPSG:32632\n1 2 3 4 5 a.jpg p\n1 2 4 6 7 b.jpg p\n", 3),  # same name, other coordinates
+        ("EPSG:32632\n1 2 3 -4 5 a.jpg\n", 2),
+    ],
+)
 def test_odm_gcp_list_bad_input_names_the_line(text: str, line: int) -> None:
     with pytest.raises(ValueError, match=f"line {line}"):
         parse_gcp_list(text, FRAME)
@@ -110,9 +126,14 @@ def test_odm_gcp_list_bad_input_names_the_line(text: str, line: int) -> None:
 
 OPENSFM_JSON = {
     "points": [
-        {"id": "0", "position": {"latitude": 45.02, "longitude": 9.01, "altitude": 14.9},
-         "observations": [{"shot_id": "a.jpg", "projection": [-0.015689, -0.0625362]},
-                          {"shot_id": "elsewhere.jpg", "projection": [0.1, 0.1]}]},
+        {
+            "id": "0",
+            "position": {"latitude": 45.02, "longitude": 9.01, "altitude": 14.9},
+            "observations": [
+                {"shot_id": "a.jpg", "projection": [-0.015689, -0.0625362]},
+                {"shot_id": "elsewhere.jpg", "projection": [0.1, 0.1]},
+            ],
+        },
         {"id": "1", "observations": [{"shot_id": "b.jpg", "projection": [0.5, 0.375]}]},
     ]
 }
@@ -133,13 +154,16 @@ def test_opensfm_gcps_denormalise_projections_like_opensfm() -> None:
     assert np.allclose(half[1].observations["b.jpg"], [511.5, 383.5])
 
 
-@pytest.mark.parametrize("text, where", [
-    ('{"points": [\n  {"id": 1,}\n]}', "line 2"),
-    ('{"points": 3}', "points"),
-    ('{"points": [{"observations": []}]}', r"points\[0\]"),
-    ('{"points": [{"id": "a", "position": {"latitude": "x", "longitude": 1, "altitude": 2}}]}', "latitude"),
-    ('{"points": [{"id": "a", "observations": [{"shot_id": "a.jpg", "projection": [1]}]}]}', "observations"),
-])
+@pytest.mark.parametrize(
+    "text, where",
+    [
+        ('{"points": [\n  {"id": 1,}\n]}', "line 2"),
+        ('{"points": 3}', "points"),
+        ('{"points": [{"observations": []}]}', r"points\[0\]"),
+        ('{"points": [{"id": "a", "position": {"latitude": "x", "longitude": 1, "altitude": 2}}]}', "latitude"),
+        ('{"points": [{"id": "a", "observations": [{"shot_id": "a.jpg", "projection": [1]}]}]}', "observations"),
+    ],
+)
 def test_opensfm_gcps_bad_input(text: str, where: str) -> None:
     with pytest.raises(ValueError, match=where):
         parse_opensfm_gcps(text, {"a.jpg": (100, 100)}, FRAME)
@@ -152,8 +176,14 @@ def test_similarity_fits_recover_planted_transforms() -> None:
     dst = 2.5 * src @ R.T + [100.0, -50.0, 7.0]
     s, R_fit, t = similarity_3d(src, dst)
     assert abs(s - 2.5) < 1e-9 and np.allclose(R_fit, R) and np.allclose(t, [100.0, -50.0, 7.0])
-    s2, R2, t2 = refine_similarity(src, dst + rng.normal(0, 0.01, dst.shape), np.full(12, 0.01), 2.4,
-                                   rotation_from_vector(np.array([0.32, -0.18, 1.1])), t + 1.0)
+    s2, R2, t2 = refine_similarity(
+        src,
+        dst + rng.normal(0, 0.01, dst.shape),
+        np.full(12, 0.01),
+        2.4,
+        rotation_from_vector(np.array([0.32, -0.18, 1.1])),
+        t + 1.0,
+    )
     assert abs(s2 - 2.5) < 1e-3 and np.abs(R2 - R).max() < 1e-3
 
 

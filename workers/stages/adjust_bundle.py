@@ -2,7 +2,7 @@
 
 Tracks from the pairwise matches, initial cameras (GPS + gimbal attitude, or incremental from the
 essential matrix and PnP), then a bundle adjustment with GPS priors, ground control points and
-self-calibration (``workers.algorithms.reconstruction``). Everything is in working-image pixels; the
+self-calibration (``workers.algorithms.sfm.reconstruction``). Everything is in working-image pixels; the
 report also gives the RMS in the photos' own pixels.
 """
 
@@ -13,14 +13,21 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.camera import Camera
-from workers.algorithms.datum import Attitude, GpsFix
-from workers.algorithms.gcp import GroundControlPoint, LocalFrame, parse_gcp_file, scale_observations
-from workers.algorithms.georef import lonlat_to_utm, utm_epsg
-from workers.algorithms.reconstruction import Reconstruction, ReconstructionOptions, reconstruct
+from workers.algorithms.geometry import Camera, lonlat_to_utm, utm_epsg
+from workers.algorithms.sfm import (
+    Attitude,
+    GpsFix,
+    GroundControlPoint,
+    LocalFrame,
+    Reconstruction,
+    ReconstructionOptions,
+    parse_gcp_file,
+    reconstruct,
+    scale_observations,
+)
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 DEFAULT_FOCAL = 0.85  # focal length / longest side when EXIF says nothing (a normal survey lens)
 
@@ -31,30 +38,53 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     frames = ws.load_frames()
     rows = {f["index"]: r for r, f in enumerate(frames)}
     features = [ws.load_features(f["index"])[0].astype(np.float64) for f in frames]
-    pairs = [p for p in read_json(ws.pairs_file())["pairs"] if p["accepted"]]
+    pairs = [p for p in ws.load_pairs() if p["accepted"]]
     matches = {(rows[p["i"]], rows[p["j"]]): ws.load_match_indices((p["i"], p["j"])) for p in pairs}
     camera, camera_source = initial_camera(cfg, frames[0])
     world = local_frame(frames, cfg.min_gps_frames)
     gps = _gps(frames, world, cfg.gps_sigma_m) if world else None
     gcps = _gcps(ws, frames, world) if world else []
-    options = ReconstructionOptions(loss_scale_px=cfg.robust_loss_px, outlier_threshold_px=cfg.outlier_px,
-                                    refine_focal="focal" in cfg.self_calibrate, refine_k1="k1" in cfg.self_calibrate,
-                                    refine_k2="k2" in cfg.self_calibrate, gcp_sigma_m=cfg.gcp_sigma_m)
-    result = reconstruct(features, matches, camera, gps=gps, attitude=_attitudes(frames), gcps=gcps,
-                         checkpoints=cfg.checkpoints, frame_names=[f["name"] for f in frames], options=options)
+    options = ReconstructionOptions(
+        loss_scale_px=cfg.robust_loss_px,
+        outlier_threshold_px=cfg.outlier_px,
+        refine_focal="focal" in cfg.self_calibrate,
+        refine_k1="k1" in cfg.self_calibrate,
+        refine_k2="k2" in cfg.self_calibrate,
+        gcp_sigma_m=cfg.gcp_sigma_m,
+    )
+    result = reconstruct(
+        features,
+        matches,
+        camera,
+        gps=gps,
+        attitude=_attitudes(frames),
+        gcps=gcps,
+        checkpoints=cfg.checkpoints,
+        frame_names=[f["name"] for f in frames],
+        options=options,
+    )
     if len(result.poses) < 2:
         reasons = "; ".join(f"{k}: {v}" for k, v in result.report["frames"]["not_registered"].items())
         raise PipelineError(f"photo-triangulation registered {len(result.poses)} frame(s): {reasons}")
     progress(0.95, "report")
     report = triangulation_report(result, frames, camera, camera_source)
     ground_z = float(np.median(result.points[:, 2])) if len(result.points) else 0.0
-    write_json(ws.cameras_file(), {
-        "world": _world_json(world), "camera": result.camera.to_json(), "camera_source": camera_source,
-        "poses": {frames[r]["index"]: {"R": R.tolist(), "C": C.tolist()} for r, (R, C) in result.poses.items()},
-        "ground_z": ground_z,
-        "not_registered": [{"index": f["index"], "name": f["name"], "reason": reason}
-                           for f in frames if (reason := result.report["frames"]["not_registered"].get(f["name"]))],
-        "report": report, "details": result.report})
+    ws.save_cameras(
+        {
+            "world": _world_json(world),
+            "camera": result.camera.to_json(),
+            "camera_source": camera_source,
+            "poses": {frames[r]["index"]: {"R": R.tolist(), "C": C.tolist()} for r, (R, C) in result.poses.items()},
+            "ground_z": ground_z,
+            "not_registered": [
+                {"index": f["index"], "name": f["name"], "reason": reason}
+                for f in frames
+                if (reason := result.report["frames"]["not_registered"].get(f["name"]))
+            ],
+            "report": report,
+            "details": result.report,
+        }
+    )
     progress(1.0, f"{report['registered']}/{report['total']} frames, RMS {report['rms_px'] or 0.0:.2f} px")
     return {k: report[k] for k in ("registered", "total", "rms_px", "points", "datum")}
 
@@ -68,10 +98,18 @@ def initial_camera(cfg: MosaicConfig, frame: dict[str, Any]) -> tuple[Camera, st
         except ValueError as exc:
             raise PipelineError(f"options.camera: {exc}") from None
         if (given.width, given.height) != (frame["orig_width"], frame["orig_height"]):
-            raise PipelineError(f"options.camera is for {given.width}x{given.height} px photos, but "
-                                f"{frame['name']} is {frame['orig_width']}x{frame['orig_height']}")
-        return given.replace(width=width, height=height, fx=given.fx * scale, fy=given.fy * scale,
-                             cx=(given.cx + 0.5) * scale - 0.5, cy=(given.cy + 0.5) * scale - 0.5), "calibration"
+            raise PipelineError(
+                f"options.camera is for {given.width}x{given.height} px photos, but "
+                f"{frame['name']} is {frame['orig_width']}x{frame['orig_height']}"
+            )
+        return given.replace(
+            width=width,
+            height=height,
+            fx=given.fx * scale,
+            fy=given.fy * scale,
+            cx=(given.cx + 0.5) * scale - 0.5,
+            cy=(given.cy + 0.5) * scale - 0.5,
+        ), "calibration"
     f35 = frame.get("focal_length_35mm")
     f = f35 / 36.0 * max(width, height) if f35 else DEFAULT_FOCAL * max(width, height)
     source = f"EXIF 35 mm focal length {f35:g} mm" if f35 else f"assumed focal = {DEFAULT_FOCAL} x longest side"
@@ -120,12 +158,17 @@ def _gcps(ws: JobWorkspace, frames: list[dict[str, Any]], world: LocalFrame) -> 
 def _world_json(world: LocalFrame | None) -> dict[str, Any]:
     if world is None:
         return {"epsg": None, "note": "no GPS: arbitrary datum, scale set by the first baseline"}
-    return {"epsg": world.epsg, "easting0": world.easting0, "northing0": world.northing0,
-            "note": "x = UTM easting - easting0, y = northing - northing0, z = GPS altitude (m)"}
+    return {
+        "epsg": world.epsg,
+        "easting0": world.easting0,
+        "northing0": world.northing0,
+        "note": "x = UTM easting - easting0, y = northing - northing0, z = GPS altitude (m)",
+    }
 
 
-def triangulation_report(result: Reconstruction, frames: list[dict[str, Any]], start: Camera,
-                         camera_source: str) -> dict[str, Any]:
+def triangulation_report(
+    result: Reconstruction, frames: list[dict[str, Any]], start: Camera, camera_source: str
+) -> dict[str, Any]:
     """The report's ``triangulation`` section (what the viewer's quality card shows)."""
     rep, scale = result.report, frames[0]["scale"]
     per_frame = rep.get("per_frame", {})
@@ -133,22 +176,43 @@ def triangulation_report(result: Reconstruction, frames: list[dict[str, Any]], s
     adjusted = result.camera
     rms = rep["rms_reprojection_px"]
     return {
-        "registered": rep["frames"]["registered"], "total": rep["frames"]["total"],
+        "registered": rep["frames"]["registered"],
+        "total": rep["frames"]["total"],
         "not_registered": [{"name": k, "reason": v} for k, v in rep["frames"]["not_registered"].items()],
-        "rms_px": rms, "rms_px_original": rms / scale if rms is not None else None,
-        "observations": rep["observations"], "points": rep["points"],
-        "outliers_dropped": rep.get("rejected_observations", 0), "datum": rep["datum"],
-        "initialisation": rep["initialisation"], "camera_source": camera_source,
+        "rms_px": rms,
+        "rms_px_original": rms / scale if rms is not None else None,
+        "observations": rep["observations"],
+        "points": rep["points"],
+        "outliers_dropped": rep.get("rejected_observations", 0),
+        "datum": rep["datum"],
+        "initialisation": rep["initialisation"],
+        "camera_source": camera_source,
         "self_calibration": {
             "focal_px_original": {"initial": start.fx / scale, "adjusted": adjusted.fx / scale},
-            "k1": {"initial": start.k1, "adjusted": adjusted.k1}, "k2": {"initial": start.k2, "adjusted": adjusted.k2}},
-        "images": [{"name": f["name"], "rms_px": per_frame.get(f["name"], {}).get("rms_px"),
-                    "observations": per_frame.get(f["name"], {}).get("observations", 0),
-                    "gps_residual_m": per_frame.get(f["name"], {}).get("gps_residual_m")} for f in frames],
+            "k1": {"initial": start.k1, "adjusted": adjusted.k1},
+            "k2": {"initial": start.k2, "adjusted": adjusted.k2},
+        },
+        "images": [
+            {
+                "name": f["name"],
+                "rms_px": per_frame.get(f["name"], {}).get("rms_px"),
+                "observations": per_frame.get(f["name"], {}).get("observations", 0),
+                "gps_residual_m": per_frame.get(f["name"], {}).get("gps_residual_m"),
+            }
+            for f in frames
+        ],
         "gps_residual_rms_m": math.sqrt(float(np.mean(np.square(gps)))) if gps else None,
-        "gcps": [{"id": gid, "role": e["role"], "observations": e["observations"], "residual_px": e.get("rms_px"),
-                  "error_m": e.get("residual_enu_m"), "error_3d_m": e.get("residual_m")}
-                 for gid, e in rep.get("gcps", {}).items()],
+        "gcps": [
+            {
+                "id": gid,
+                "role": e["role"],
+                "observations": e["observations"],
+                "residual_px": e.get("rms_px"),
+                "error_m": e.get("residual_enu_m"),
+                "error_3d_m": e.get("residual_m"),
+            }
+            for gid, e in rep.get("gcps", {}).items()
+        ],
         "checkpoint_rmse_m": rep.get("checkpoint_rmse_m"),
         "seconds": rep.get("seconds"),
     }

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.alignment import (
+from workers.algorithms.mosaic import (
     TiePoints,
     chain_homographies,
     is_plausible,
@@ -16,7 +16,7 @@ from workers.algorithms.alignment import (
 )
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 MAX_ROUNDS = 5  # adjustments, each after dropping the worst inconsistent pair
 MAX_PAIR_RMS_FACTOR = 1.5  # a pair is inconsistent above this multiple of the RANSAC threshold
@@ -25,7 +25,7 @@ MAX_PAIR_RMS_FACTOR = 1.5  # a pair is inconsistent above this multiple of the R
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Read ``pairs.json`` and the tie points; write ``alignment.json`` (frame -> plane homographies)."""
     frames = {f["index"]: f for f in ws.load_frames()}
-    pairs = [p for p in read_json(ws.pairs_file())["pairs"] if p["accepted"]]
+    pairs = [p for p in ws.load_pairs() if p["accepted"]]
     dropped: list[dict[str, Any]] = []
     for round_ in range(MAX_ROUNDS):
         progress(round_ / MAX_ROUNDS, f"adjustment round {round_ + 1}")
@@ -35,8 +35,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             break
         # A pair whose tie points stay far apart once every other pair has had its say is a false
         # overlap (repeated texture, moving objects): drop it and adjust again without it.
-        dropped += [{**p, "reason": "inconsistent with the other pairs after adjustment"} for p in pairs
-                    if (p["i"], p["j"]) in bad]
+        dropped += [
+            {**p, "reason": "inconsistent with the other pairs after adjustment"}
+            for p in pairs
+            if (p["i"], p["j"]) in bad
+        ]
         pairs = [p for p in pairs if (p["i"], p["j"]) not in bad]
     sizes = {k: (frames[k]["width"], frames[k]["height"]) for k in refined}
     rejected = _rejections(frames, refined, sizes)
@@ -44,37 +47,61 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     residuals = tie_residuals_px(used, ties)
     all_res = np.concatenate(list(residuals.values())) if residuals else np.zeros(0)
     rms = float(np.sqrt(np.mean(all_res**2))) if len(all_res) else None
-    write_json(ws.alignment_file(), {
-        "reference": root,
-        "homographies": {str(k): H.tolist() for k, H in sorted(used.items())},
-        "rejected": rejected,
-        "tie_point_rms_px": rms,
-        "tie_points": len(all_res),
-        "dropped_pairs": [{"i": p["i"], "j": p["j"], "reason": p["reason"]} for p in dropped],
-        "pairs": [{"i": i, "j": j, "rms_px": float(np.sqrt(np.mean(r**2))), "max_px": float(r.max())}
-                  for (i, j), r in sorted(residuals.items())],
-    })
+    ws.save_alignment(
+        {
+            "reference": root,
+            "homographies": {str(k): H.tolist() for k, H in sorted(used.items())},
+            "rejected": rejected,
+            "tie_point_rms_px": rms,
+            "tie_points": len(all_res),
+            "dropped_pairs": [{"i": p["i"], "j": p["j"], "reason": p["reason"]} for p in dropped],
+            "pairs": [
+                {"i": i, "j": j, "rms_px": float(np.sqrt(np.mean(r**2))), "max_px": float(r.max())}
+                for (i, j), r in sorted(residuals.items())
+            ],
+        }
+    )
     progress(1.0, f"{len(used)} frames aligned")
     return {"reference": root, "frames_aligned": len(used), "frames_rejected": len(rejected), "tie_point_rms_px": rms}
 
 
-def _adjust(ws: JobWorkspace, cfg: MosaicConfig, frames: dict[int, dict[str, Any]], pairs: list[dict[str, Any]],
-            ) -> tuple[int, dict[int, np.ndarray], dict[tuple[int, int], TiePoints]]:
+def _adjust(
+    ws: JobWorkspace,
+    cfg: MosaicConfig,
+    frames: dict[int, dict[str, Any]],
+    pairs: list[dict[str, Any]],
+) -> tuple[int, dict[int, np.ndarray], dict[tuple[int, int], TiePoints]]:
     """Spanning tree over ``pairs``, chained initial homographies, then the global adjustment."""
     root, parent = spanning_tree(max(frames) + 1, {(p["i"], p["j"]): float(p["inliers"]) for p in pairs})
     if not parent:
-        raise PipelineError("no two frames overlap: no pair had enough matching points "
-                            f"(at least {cfg.min_inliers} homography inliers); check the photos overlap")
+        raise PipelineError(
+            "no two frames overlap: no pair had enough matching points "
+            f"(at least {cfg.min_inliers} homography inliers); check the photos overlap"
+        )
     initial = chain_homographies(root, parent, {(p["i"], p["j"]): np.array(p["H"]) for p in pairs})
-    ties = {(p["i"], p["j"]): TiePoints(*ws.load_matches((p["i"], p["j"])))
-            for p in pairs if p["i"] in initial and p["j"] in initial}
+    ties = {
+        (p["i"], p["j"]): TiePoints(*ws.load_matches((p["i"], p["j"])))
+        for p in pairs
+        if p["i"] in initial and p["j"] in initial
+    }
     sizes = {k: (frames[k]["width"], frames[k]["height"]) for k in initial}
-    return root, refine_homographies(initial, ties, root, sizes, loss_scale_px=cfg.ransac_threshold_px,
-                                     perspective_damping=cfg.perspective_damping), ties
+    return (
+        root,
+        refine_homographies(
+            initial,
+            ties,
+            root,
+            sizes,
+            loss_scale_px=cfg.ransac_threshold_px,
+            perspective_damping=cfg.perspective_damping,
+        ),
+        ties,
+    )
 
 
-def _inconsistent_pairs(homs: dict[int, np.ndarray], ties: dict[tuple[int, int], TiePoints],
-                        limit_px: float) -> set[tuple[int, int]]:
+def _inconsistent_pairs(
+    homs: dict[int, np.ndarray], ties: dict[tuple[int, int], TiePoints], limit_px: float
+) -> set[tuple[int, int]]:
     residuals = tie_residuals_px(homs, ties)
     rms = {pair: float(np.sqrt(np.mean(r**2))) for pair, r in residuals.items()}
     worst = max(rms, key=lambda pair: rms[pair], default=None)
@@ -82,13 +109,20 @@ def _inconsistent_pairs(homs: dict[int, np.ndarray], ties: dict[tuple[int, int],
     return {worst} if worst is not None and rms[worst] > limit_px else set()
 
 
-def _rejections(frames: dict[int, dict[str, Any]], refined: dict[int, np.ndarray],
-                sizes: dict[int, tuple[int, int]]) -> list[dict[str, Any]]:
+def _rejections(
+    frames: dict[int, dict[str, Any]], refined: dict[int, np.ndarray], sizes: dict[int, tuple[int, int]]
+) -> list[dict[str, Any]]:
     out = []
     for k, f in sorted(frames.items()):
         if k not in refined:
-            out.append({"index": k, "name": f["name"], "reason": "no overlap with the other frames "
-                        "(not enough matching points with any frame it was compared with)"})
+            out.append(
+                {
+                    "index": k,
+                    "name": f["name"],
+                    "reason": "no overlap with the other frames "
+                    "(not enough matching points with any frame it was compared with)",
+                }
+            )
         elif not is_plausible(refined[k], *sizes[k]):
             out.append({"index": k, "name": f["name"], "reason": "alignment folds or stretches the frame"})
     return out

@@ -9,11 +9,12 @@ import cv2
 from workers.algorithms.calibration import find_chessboard
 from workers.config import CalibrationConfig, StereoCalibrationConfig
 from workers.parallel import ordered_map, thread_count
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
-def run(ws: JobWorkspace, cfg: CalibrationConfig | StereoCalibrationConfig, *,
-        progress: ProgressFn = noop_progress) -> dict[str, Any]:
+def run(
+    ws: JobWorkspace, cfg: CalibrationConfig | StereoCalibrationConfig, *, progress: ProgressFn = noop_progress
+) -> dict[str, Any]:
     """Write ``corners.json``: per photo, the corners in OpenCV's order, or why there are none."""
     frames = ws.load_inputs()
     if getattr(cfg, "method", "chessboard") != "chessboard":
@@ -21,7 +22,7 @@ def run(ws: JobWorkspace, cfg: CalibrationConfig | StereoCalibrationConfig, *,
     else:
         found = ordered_map(lambda f: _corners(f, cfg.pattern), frames, thread_count(0), progress, "photo")
     images = {f["name"]: entry for f, entry in zip(frames, found, strict=True)}
-    write_json(ws.corners_file(), {"pattern": list(cfg.pattern), "images": images})
+    ws.save_corners({"pattern": list(cfg.pattern), "images": images})
     with_board = sum(entry["points"] is not None for entry in found)
     return {"photos": len(frames), "with_board": with_board}
 

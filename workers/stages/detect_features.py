@@ -7,7 +7,7 @@ from typing import Any
 import cv2
 
 from gpu_kernels.backend import resolve_device
-from workers.algorithms.features import detect, detector_name
+from workers.algorithms.mosaic import detect, detector_name
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress

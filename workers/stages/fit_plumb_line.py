@@ -7,10 +7,10 @@ from typing import Any
 import numpy as np
 
 from workers.algorithms.calibration import plumb_line
-from workers.algorithms.camera import Camera
+from workers.algorithms.geometry import Camera
 from workers.config import CalibrationConfig
 from workers.pipeline import PipelineError
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
 def run(ws: JobWorkspace, cfg: CalibrationConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
@@ -21,14 +21,20 @@ def run(ws: JobWorkspace, cfg: CalibrationConfig, *, progress: ProgressFn = noop
         result = plumb_line([np.array(line, dtype=np.float64) for line in cfg.lines], camera, cfg.terms)
     except ValueError as exc:
         raise PipelineError(str(exc)) from None
-    write_json(ws.calibration_file(), {
-        "kind": "calibration", "method": "plumb_line",
-        "camera": result.camera.to_json(),
-        "note": "distortion terms only; fx, fy, cx, cy are the given (or assumed) values and only normalise",
-        "rms_px": result.rms_px, "std": result.std,
-        "lines": [{"index": n, "points": len(res), "rms_px": float(rms), "residuals_px": res.tolist()}
-                  for n, (rms, res) in enumerate(zip(result.line_rms_px, result.residuals, strict=True))],
-    })
+    ws.save_calibration(
+        {
+            "kind": "calibration",
+            "method": "plumb_line",
+            "camera": result.camera.to_json(),
+            "note": "distortion terms only; fx, fy, cx, cy are the given (or assumed) values and only normalise",
+            "rms_px": result.rms_px,
+            "std": result.std,
+            "lines": [
+                {"index": n, "points": len(res), "rms_px": float(rms), "residuals_px": res.tolist()}
+                for n, (rms, res) in enumerate(zip(result.line_rms_px, result.residuals, strict=True))
+            ],
+        }
+    )
     progress(1.0, f"RMS {result.rms_px:.3f} px")
     return {"lines": len(cfg.lines), "rms_px": result.rms_px}
 

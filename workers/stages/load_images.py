@@ -25,15 +25,25 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             continue
         working, scale = _downscale(image, cfg.working_max_px)
         ws.save_working_image(k, working)
-        frames.append({
-            "index": k, "name": item["name"], "path": item["path"],
-            "orig_width": image.shape[1], "orig_height": image.shape[0],
-            "width": working.shape[1], "height": working.shape[0], "scale": scale,
-            "gps": item.get("gps"), "focal_length_mm": item.get("focal_length_mm"),
-            "focal_length_35mm": item.get("focal_length_35mm"),
-            "yaw": item.get("yaw"), "pitch": item.get("pitch"), "roll": item.get("roll"),
-            "relative_altitude": item.get("relative_altitude"),
-        })
+        frames.append(
+            {
+                "index": k,
+                "name": item["name"],
+                "path": item["path"],
+                "orig_width": image.shape[1],
+                "orig_height": image.shape[0],
+                "width": working.shape[1],
+                "height": working.shape[0],
+                "scale": scale,
+                "gps": item.get("gps"),
+                "focal_length_mm": item.get("focal_length_mm"),
+                "focal_length_35mm": item.get("focal_length_35mm"),
+                "yaw": item.get("yaw"),
+                "pitch": item.get("pitch"),
+                "roll": item.get("roll"),
+                "relative_altitude": item.get("relative_altitude"),
+            }
+        )
     if len(frames) < 2:
         raise PipelineError(f"only {len(frames)} of {len(inputs)} frames could be decoded; a mosaic needs 2")
     ws.save_frames(frames, rejected)

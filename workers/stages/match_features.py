@@ -11,12 +11,17 @@ from typing import Any
 import numpy as np
 
 from gpu_kernels.backend import Device, resolve_device
-from workers.algorithms.features import match
-from workers.algorithms.matching import estimate_fundamental, estimate_homography, spread_subset
-from workers.algorithms.pairing import candidate_pairs, local_metres
+from workers.algorithms.mosaic import (
+    candidate_pairs,
+    estimate_fundamental,
+    estimate_homography,
+    local_metres,
+    match,
+    spread_subset,
+)
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
@@ -28,17 +33,31 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     features = {f["index"]: ws.load_features(f["index"]) for f in frames}
     device = resolve_device(cfg.device)
     threads = 1 if device == "cuda" else thread_count(cfg.threads)
-    results = ordered_map(lambda ab: _match_pair(ws, cfg, device, frames[ab[0]], frames[ab[1]], features), pairs,
-                          threads, progress, "pair")
-    write_json(ws.pairs_file(), {"pairs": results})
+    results = ordered_map(
+        lambda ab: _match_pair(ws, cfg, device, frames[ab[0]], frames[ab[1]], features),
+        pairs,
+        threads,
+        progress,
+        "pair",
+    )
+    ws.save_pairs(results)
     accepted = [r for r in results if r["accepted"]]
     exhaustive = not with_gps and len(frames) <= cfg.exhaustive_max_frames
-    return {"pairs_tried": len(results), "pairs_accepted": len(accepted),
-            "selection": "gps+order" if with_gps else ("exhaustive" if exhaustive else "order")}
+    return {
+        "pairs_tried": len(results),
+        "pairs_accepted": len(accepted),
+        "selection": "gps+order" if with_gps else ("exhaustive" if exhaustive else "order"),
+    }
 
 
-def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: dict[str, Any], fb: dict[str, Any],
-                features: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+def _match_pair(
+    ws: JobWorkspace,
+    cfg: MosaicConfig,
+    device: Device,
+    fa: dict[str, Any],
+    fb: dict[str, Any],
+    features: dict[int, tuple[np.ndarray, np.ndarray]],
+) -> dict[str, Any]:
     i, j = fa["index"], fb["index"]
     (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
     matches = match(desc_i, desc_j, cfg.feature_type, device, cfg.ratio_test, cfg.ncc_threshold)
@@ -46,12 +65,23 @@ def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: dict[st
     H, inliers = estimate(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
     n_in = int(inliers.sum())
     accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
-    record: dict[str, Any] = {"i": i, "j": j, "matches": len(matches), "inliers": n_in, "accepted": bool(accepted),
-                              "H" if cfg.mode == "planar" else "F": H.tolist() if H is not None else None}
+    record: dict[str, Any] = {
+        "i": i,
+        "j": j,
+        "matches": len(matches),
+        "inliers": n_in,
+        "accepted": bool(accepted),
+        "H" if cfg.mode == "planar" else "F": H.tolist() if H is not None else None,
+    }
     if accepted:
         good = matches[inliers]
         keep = spread_subset(pts_i[good[:, 0]], (fa["width"], fa["height"]), cfg.max_tie_points_per_pair)
-        ws.save_matches((i, j), pts_i[good[keep, 0]].astype(np.float64), pts_j[good[keep, 1]].astype(np.float64),
-                        good[keep, 0], good[keep, 1])
+        ws.save_matches(
+            (i, j),
+            pts_i[good[keep, 0]].astype(np.float64),
+            pts_j[good[keep, 1]].astype(np.float64),
+            good[keep, 0],
+            good[keep, 1],
+        )
         record["tie_points"] = len(keep)
     return record

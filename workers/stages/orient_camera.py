@@ -6,24 +6,15 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.camera import Camera
-from workers.algorithms.resection import Resection, pose_json, resect_plane, resect_points
+from workers.algorithms.specimen import Resection, pose_json, resect_plane, resect_points
 from workers.config import CrackSurveyConfig, SurveyPhoto
-from workers.pipeline import PipelineError
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, write_json
-
-
-def survey_camera(cfg: CrackSurveyConfig) -> Camera:
-    """The job's camera; a bad camera JSON is the user's to fix."""
-    try:
-        return Camera.from_json(cfg.camera)
-    except ValueError as exc:
-        raise PipelineError(f"options.camera: {exc}") from None
+from workers.pipeline import PipelineError, option_camera
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
 def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``orientation.json``: per photo, its pose and the residuals of its control points in px and mm."""
-    camera = survey_camera(cfg)
+    camera = option_camera(cfg.camera, "camera")
     photos = [(s, photo) for s, stage in enumerate(cfg.stages) for photo in stage.photos]
     entries = []
     for n, (s, photo) in enumerate(photos):
@@ -36,7 +27,7 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
             raise PipelineError(f"{photo.image}: {exc}") from None
         _check_fit(photo, result, cfg.max_rms_px)
         entries.append(_photo_entry(s, photo, result))
-    write_json(ws.orientation_file(), {"photos": entries})
+    ws.save_orientation(entries)
     progress(1.0, f"{len(photos)} photo(s) oriented")
     return {"photos": len(entries), "worst_rms_px": max(e["rms_px"] for e in entries)}
 
@@ -45,20 +36,36 @@ def _check_fit(photo: SurveyPhoto, result: Resection, max_rms_px: float) -> None
     errors = np.linalg.norm(result.residuals_px, axis=1)
     worst = int(np.argmax(errors))
     if not np.isfinite(result.rms_px) or result.rms_px > max_rms_px:
-        raise PipelineError(f"{photo.image}: the control points fit the camera with RMS {result.rms_px:.1f} px "
-                            f"(limit {max_rms_px} px); the worst is point {worst} at pixel "
-                            f"{list(photo.control_points[worst].pixel)} ({errors[worst]:.1f} px off). "
-                            "Check its marking and model coordinates, and that the camera is the one that took it")
+        raise PipelineError(
+            f"{photo.image}: the control points fit the camera with RMS {result.rms_px:.1f} px "
+            f"(limit {max_rms_px} px); the worst is point {worst} at pixel "
+            f"{list(photo.control_points[worst].pixel)} ({errors[worst]:.1f} px off). "
+            "Check its marking and model coordinates, and that the camera is the one that took it"
+        )
     if not np.all(np.isfinite(result.residuals_mm)):
-        raise PipelineError(f"{photo.image}: some control point rays miss the specimen plane; "
-                            "check the model coordinates")
+        raise PipelineError(
+            f"{photo.image}: some control point rays miss the specimen plane; check the model coordinates"
+        )
 
 
 def _photo_entry(stage: int, photo: SurveyPhoto, result: Resection) -> dict[str, Any]:
-    points = [{"index": k, "pixel": list(p.pixel), "model": list(p.model),
-               "residual_px": result.residuals_px[k].tolist(), "error_px": float(np.hypot(*result.residuals_px[k])),
-               "residual_mm": result.residuals_mm[k].tolist(),
-               "error_mm": float(np.linalg.norm(result.residuals_mm[k]))}
-              for k, p in enumerate(photo.control_points)]
-    return {"image": photo.image, "stage": stage, **pose_json(result.R, result.C),
-            "rms_px": result.rms_px, "rms_mm": result.rms_mm, "points": points}
+    points = [
+        {
+            "index": k,
+            "pixel": list(p.pixel),
+            "model": list(p.model),
+            "residual_px": result.residuals_px[k].tolist(),
+            "error_px": float(np.hypot(*result.residuals_px[k])),
+            "residual_mm": result.residuals_mm[k].tolist(),
+            "error_mm": float(np.linalg.norm(result.residuals_mm[k])),
+        }
+        for k, p in enumerate(photo.control_points)
+    ]
+    return {
+        "image": photo.image,
+        "stage": stage,
+        **pose_json(result.R, result.C),
+        "rms_px": result.rms_px,
+        "rms_mm": result.rms_mm,
+        "points": points,
+    }

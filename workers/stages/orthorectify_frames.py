@@ -13,11 +13,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from workers.algorithms.camera import Camera
+from workers.algorithms.geometry import Camera
+from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, map_grid, pixel_grid
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
-from workers.stages.georeference import MAX_OUTPUT_PIXELS, map_grid, pixel_grid
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 MIN_KEPT_ROWS = 0.1  # a frame cut to less than this share of its rows (or columns) is left out
 
@@ -25,7 +25,7 @@ MIN_KEPT_ROWS = 0.1  # a frame cut to less than this share of its rows (or colum
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``ortho/frame_NNNN.npy`` (undistorted), ``alignment.json`` and ``georef.json``."""
     frames = {f["index"]: f for f in ws.load_frames()}
-    adjusted = read_json(ws.cameras_file())
+    adjusted = ws.load_cameras()
     camera = Camera.from_json(adjusted["camera"])
     ideal = camera.replace(k1=0.0, k2=0.0, k3=0.0, t1=0.0, t2=0.0)
     z0 = adjusted["ground_z"] if cfg.ground_elevation_m is None else cfg.ground_elevation_m
@@ -41,8 +41,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         image_from_ground = ideal.matrix() @ R @ np.array([[1, 0, -C[0]], [0, 1, -C[1]], [0, 0, z0 - C[2]]])
         crop = ground_crop(R, C, z0, ideal, cfg.max_ground_range)
         if crop is None:
-            rejected.append({"index": k, "name": frames[k]["name"], "reason": "looks at the horizon: too little "
-                             f"ground within {cfg.max_ground_range:g} flying heights"})
+            rejected.append(
+                {
+                    "index": k,
+                    "name": frames[k]["name"],
+                    "reason": f"looks at the horizon: too little ground within {cfg.max_ground_range:g} flying heights",
+                }
+            )
             continue
         x0, y0, x1, y1 = crop
         undistorted = cv2.remap(ws.load_working_image(k), maps[0], maps[1], cv2.INTER_LINEAR)[y0:y1, x0:x1]
@@ -53,18 +58,28 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     if not homographies:
         raise PipelineError("no frame sees enough ground to orthorectify")
     geo = _grid(adjusted["world"], homographies, sizes, gsd)
-    write_json(ws.alignment_file(), {
-        "mode": "ortho", "reference": min(homographies),
-        "homographies": {k: H.tolist() for k, H in homographies.items()},
-        "frame_sizes": sizes, "ground_z": z0, "tie_point_rms_px": adjusted["report"]["rms_px"],
-        "tie_points": adjusted["report"]["observations"], "rejected": rejected, "pairs": [], "dropped_pairs": []})
-    write_json(ws.georef_file(), {**geo, "gps_residual_rms_m": adjusted["report"]["gps_residual_rms_m"]})
+    ws.save_alignment(
+        {
+            "mode": "ortho",
+            "reference": min(homographies),
+            "homographies": {k: H.tolist() for k, H in homographies.items()},
+            "frame_sizes": sizes,
+            "ground_z": z0,
+            "tie_point_rms_px": adjusted["report"]["rms_px"],
+            "tie_points": adjusted["report"]["observations"],
+            "rejected": rejected,
+            "pairs": [],
+            "dropped_pairs": [],
+        }
+    )
+    ws.save_georef({**geo, "gps_residual_rms_m": adjusted["report"]["gps_residual_rms_m"]})
     progress(1.0, f"{len(homographies)} frames at {gsd * 100:.1f} cm/px")
     return {"frames": len(homographies), "rejected": len(rejected), "gsd_m": gsd, "ground_z": z0}
 
 
-def ground_crop(R: np.ndarray, C: np.ndarray, z0: float, camera: Camera,
-                max_range: float) -> tuple[int, int, int, int] | None:
+def ground_crop(
+    R: np.ndarray, C: np.ndarray, z0: float, camera: Camera, max_range: float
+) -> tuple[int, int, int, int] | None:
     """The part of the frame, ``(x0, y0, x1, y1)`` px (end exclusive), that sees the ground nearby.
 
     A pixel qualifies if its ray meets the plane ``z0`` in front of the camera within ``max_range``
@@ -110,8 +125,9 @@ def _area(crop: tuple[int, int, int, int]) -> int:
     return (crop[2] - crop[0]) * (crop[3] - crop[1])
 
 
-def _grid(world: dict[str, Any], homographies: dict[int, np.ndarray], sizes: dict[int, list[int]],
-          gsd: float) -> dict[str, Any]:
+def _grid(
+    world: dict[str, Any], homographies: dict[int, np.ndarray], sizes: dict[int, list[int]], gsd: float
+) -> dict[str, Any]:
     corners = []
     for k, H in homographies.items():
         w, h = sizes[k]
@@ -120,11 +136,23 @@ def _grid(world: dict[str, Any], homographies: dict[int, np.ndarray], sizes: dic
     plane = np.concatenate(corners)
     if world.get("epsg"):
         plane_to_map = [[gsd, 0.0, world["easting0"]], [0.0, -gsd, world["northing0"]], [0.0, 0.0, 1.0]]
-        grid = {"georeferenced": True, "reason": "", "epsg": world["epsg"], "plane_to_map": plane_to_map,
-                "gsd_m": gsd, **map_grid(plane, plane_to_map)}
+        grid = {
+            "georeferenced": True,
+            "reason": "",
+            "epsg": world["epsg"],
+            "plane_to_map": plane_to_map,
+            "gsd_m": gsd,
+            **map_grid(plane, plane_to_map),
+        }
     else:
-        grid = {"georeferenced": False, "reason": world.get("note", "no GPS or GCPs: arbitrary datum"),
-                "epsg": None, "plane_to_map": np.eye(3).tolist(), "gsd_m": None, **pixel_grid(plane)}
+        grid = {
+            "georeferenced": False,
+            "reason": world.get("note", "no GPS or GCPs: arbitrary datum"),
+            "epsg": None,
+            "plane_to_map": np.eye(3).tolist(),
+            "gsd_m": None,
+            **pixel_grid(plane),
+        }
     if grid["width"] * grid["height"] > MAX_OUTPUT_PIXELS:
         raise PipelineError(f"the orthomosaic would be {grid['width']}x{grid['height']} px; lower max_ground_range")
     return grid

@@ -6,24 +6,26 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.alignment import apply_homography, frame_corners
-from workers.algorithms.georef import utm_to_lonlat
+from workers.algorithms.geometry import utm_to_lonlat
+from workers.algorithms.mosaic import apply_homography, frame_corners
 from workers.config import MosaicConfig
 from workers.pipeline import pipeline_key, stage_names
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress, read_json, write_json
+from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``report.json`` and, for a georeferenced mosaic, ``footprints.geojson``."""
     progress(0.0, "report")
     frames = ws.load_composed_frames()
-    align, geo = read_json(ws.alignment_file()), read_json(ws.georef_file())
-    pairs = read_json(ws.pairs_file())["pairs"]
-    homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
+    align, geo = ws.load_alignment(), ws.load_georef()
+    pairs = ws.load_pairs()
+    homs = ws.load_homographies()
     to_out = np.linalg.inv(np.array(geo["output_to_plane"]))
-    footprints = {k: _to_crs(geo, apply_homography(to_out @ H, frame_corners(frames[k]["width"], frames[k]["height"])))
-                  for k, H in homs.items()}
-    coverage = read_json(ws.root / "coverage.json")
+    footprints = {
+        k: _to_crs(geo, apply_homography(to_out @ H, frame_corners(frames[k]["width"], frames[k]["height"])))
+        for k, H in homs.items()
+    }
+    coverage = ws.load_coverage()
     outline = [_to_crs(geo, np.array(ring)) for ring in coverage["outline_px"]]
     ref = frames[align["reference"]]
     rms = align["tie_point_rms_px"]
@@ -44,15 +46,20 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "gsd_m": geo["gsd_m"],  # the mosaic's pixel size
         "gsd_original_m": geo["gsd_m"] * ref["scale"] if geo["gsd_m"] else None,  # the photos' own
         "gps_residual_rms_m": geo.get("gps_residual_rms_m"),
-        "mosaic": {"width": geo["width"], "height": geo["height"], "transform": geo["transform"],
-                   "footprint": _polygon(outline, geo), "coverage_fraction": coverage["area_fraction"]},
+        "mosaic": {
+            "width": geo["width"],
+            "height": geo["height"],
+            "transform": geo["transform"],
+            "footprint": _polygon(outline, geo),
+            "coverage_fraction": coverage["area_fraction"],
+        },
         "stage_seconds": _stage_seconds(ws, pipeline_key("mosaic", {"mode": cfg.mode})),
     }
     if cfg.mode == "ortho":
-        report["triangulation"] = read_json(ws.cameras_file())["report"]
-    write_json(ws.report_file(), report)
+        report["triangulation"] = ws.load_cameras()["report"]
+    ws.save_report(report)
     if geo["georeferenced"]:
-        write_json(ws.footprints_file(), _footprint_collection(frames, footprints))
+        ws.save_footprints(_footprint_collection(frames, footprints))
     progress(1.0, "report")
     return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
 
@@ -68,27 +75,43 @@ def _to_crs(geo: dict[str, Any], out_px: np.ndarray) -> np.ndarray:
 
 def _polygon(rings: list[np.ndarray], geo: dict[str, Any]) -> dict[str, Any]:
     closed = [np.vstack([r, r[:1]]).round(8).tolist() for r in rings]
-    return {"type": "MultiPolygon", "coordinates": [[ring] for ring in closed],
-            "units": "lon/lat degrees" if geo["georeferenced"] else "mosaic pixels"}
+    return {
+        "type": "MultiPolygon",
+        "coordinates": [[ring] for ring in closed],
+        "units": "lon/lat degrees" if geo["georeferenced"] else "mosaic pixels",
+    }
 
 
 def _frame_entry(frame: dict[str, Any], footprint: np.ndarray, align: dict[str, Any]) -> dict[str, Any]:
-    return {"index": frame["index"], "name": frame["name"], "gps": frame.get("gps"),
-            "size": [frame["orig_width"], frame["orig_height"]], "working_scale": frame["scale"],
-            "footprint": np.vstack([footprint, footprint[:1]]).round(8).tolist()}
+    return {
+        "index": frame["index"],
+        "name": frame["name"],
+        "gps": frame.get("gps"),
+        "size": [frame["orig_width"], frame["orig_height"]],
+        "working_scale": frame["scale"],
+        "footprint": np.vstack([footprint, footprint[:1]]).round(8).tolist(),
+    }
 
 
-def _pair_entries(pairs: list[dict[str, Any]], frames: dict[int, dict[str, Any]],
-                  align: dict[str, Any]) -> list[dict[str, Any]]:
+def _pair_entries(
+    pairs: list[dict[str, Any]], frames: dict[int, dict[str, Any]], align: dict[str, Any]
+) -> list[dict[str, Any]]:
     rms = {(p["i"], p["j"]): p["rms_px"] for p in align["pairs"]}
     dropped = {(p["i"], p["j"]): p["reason"] for p in align["dropped_pairs"]}
     entries = []
     for p in pairs:
         pair = (p["i"], p["j"])
         reason = dropped.get(pair) or ("" if p["accepted"] else "too few inliers of the pair's model")
-        entries.append({"frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]], "matches": p["matches"],
-                        "inliers": p["inliers"], "used": p["accepted"] and pair not in dropped,
-                        "reason_unused": reason, "tie_point_rms_px": rms.get(pair)})
+        entries.append(
+            {
+                "frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]],
+                "matches": p["matches"],
+                "inliers": p["inliers"],
+                "used": p["accepted"] and pair not in dropped,
+                "reason_unused": reason,
+                "tie_point_rms_px": rms.get(pair),
+            }
+        )
     return entries
 
 
@@ -102,7 +125,12 @@ def _stage_seconds(ws: JobWorkspace, pipeline: str) -> dict[str, float]:
 
 
 def _footprint_collection(frames: dict[int, dict[str, Any]], footprints: dict[int, np.ndarray]) -> dict[str, Any]:
-    features = [{"type": "Feature", "properties": {"index": k, "name": frames[k]["name"]},
-                 "geometry": {"type": "Polygon", "coordinates": [np.vstack([c, c[:1]]).round(8).tolist()]}}
-                for k, c in sorted(footprints.items())]
+    features = [
+        {
+            "type": "Feature",
+            "properties": {"index": k, "name": frames[k]["name"]},
+            "geometry": {"type": "Polygon", "coordinates": [np.vstack([c, c[:1]]).round(8).tolist()]},
+        }
+        for k, c in sorted(footprints.items())
+    ]
     return {"type": "FeatureCollection", "features": features}

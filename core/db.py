@@ -1,0 +1,146 @@
+"""Job records: flights, their images and the jobs run on them (SQLAlchemy 2)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    TypeDecorator,
+    create_engine,
+    event,
+    inspect,
+    text,
+)
+from sqlalchemy.engine import Dialect, Engine
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship, sessionmaker
+
+from core.kinds import JobStatus
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class UtcDateTime(TypeDecorator[datetime]):
+    """Timezone-aware UTC datetimes on every backend (SQLite stores them naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is not None and value.tzinfo is None:
+            return value.replace(tzinfo=UTC)
+        return value
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {dict[str, Any]: JSON, datetime: UtcDateTime}
+
+
+class Flight(Base):
+    __tablename__ = "flights"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    images: Mapped[list[Image]] = relationship(
+        back_populates="flight", order_by="Image.seq", cascade="all, delete-orphan"
+    )
+
+
+class Image(Base):
+    __tablename__ = "images"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    flight_id: Mapped[int] = mapped_column(ForeignKey("flights.id"), index=True)
+    seq: Mapped[int] = mapped_column(Integer)  # upload order within the flight, from 1
+    filename: Mapped[str] = mapped_column(String(255))  # as the client named it, for display only
+    stored_name: Mapped[str] = mapped_column(String(64))  # chosen by the server, inside the flight folder
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    meta: Mapped[dict[str, Any]] = mapped_column(default=dict)  # GPS, focal length, attitude (EXIF/XMP)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    flight: Mapped[Flight] = relationship(back_populates="images")
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    # None for calibration jobs, whose photos are stored in the job's own folder
+    flight_id: Mapped[int | None] = mapped_column(ForeignKey("flights.id"), index=True, nullable=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    status: Mapped[str] = mapped_column(String(16), default=JobStatus.queued, index=True)
+    stage: Mapped[str] = mapped_column(String(64), default="")
+    progress: Mapped[float] = mapped_column(Float, default=0.0)  # 0-100, weighted over the stages
+    progress_detail: Mapped[str] = mapped_column(String(200), default="")  # e.g. "frame 4/12"
+    timings: Mapped[dict[str, Any]] = mapped_column(default=dict)  # stage -> wall seconds
+    options: Mapped[dict[str, Any]] = mapped_column(default=dict)  # as requested, before defaults
+    error: Mapped[str] = mapped_column(Text, default="")
+    celery_id: Mapped[str] = mapped_column(String(64), default="")
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+
+class Database:
+    """An engine and its session factory; the schema is created on start."""
+
+    def __init__(self, url: str) -> None:
+        connect_args: dict[str, Any] = {}
+        if url.startswith("sqlite"):
+            # The API's threads and the worker processes share one file: wait for locks, don't fail.
+            connect_args = {"check_same_thread": False, "timeout": 30}
+        self.engine: Engine = create_engine(url, connect_args=connect_args, pool_pre_ping=True)
+        if url.startswith("sqlite"):
+            event.listen(self.engine, "connect", _sqlite_pragmas)
+        self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+        Base.metadata.create_all(self.engine)
+        _allow_jobs_without_flight(self.engine)
+
+    @contextmanager
+    def session(self) -> Iterator[Session]:
+        """A session that commits on success and rolls back on any error."""
+        with self._sessions() as session, session.begin():
+            yield session
+
+
+def _allow_jobs_without_flight(engine: Engine) -> None:
+    """Upgrade a database made before calibration jobs, whose ``jobs.flight_id`` was NOT NULL.
+
+    PostgreSQL drops the constraint in place; SQLite cannot, so the table is rebuilt and its rows copied,
+    in one transaction: every job already recorded is kept as it was.
+    """
+    column = next(c for c in inspect(engine).get_columns("jobs") if c["name"] == "flight_id")
+    if column["nullable"]:
+        return
+    table = Job.__table__
+    with engine.begin() as conn:
+        if engine.dialect.name != "sqlite":
+            conn.execute(text("ALTER TABLE jobs ALTER COLUMN flight_id DROP NOT NULL"))
+            return
+        conn.execute(text("ALTER TABLE jobs RENAME TO jobs_before_upgrade"))
+        for index in table.indexes:  # type: ignore[attr-defined]
+            conn.execute(text(f"DROP INDEX IF EXISTS {index.name}"))
+        table.create(conn)  # type: ignore[attr-defined]
+        names = ", ".join(c.name for c in table.columns)  # type: ignore[attr-defined]
+        conn.execute(text(f"INSERT INTO jobs ({names}) SELECT {names} FROM jobs_before_upgrade"))
+        conn.execute(text("DROP TABLE jobs_before_upgrade"))
+
+
+def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    cursor = dbapi_connection.cursor()
+    cursor.execute("PRAGMA journal_mode=WAL")  # readers (SSE, API) never block the writing worker
+    cursor.execute("PRAGMA foreign_keys=ON")
+    cursor.close()

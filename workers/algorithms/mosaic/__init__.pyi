@@ -1,0 +1,86 @@
+"""What stages, the API, tests and benchmarks may import from ``workers.algorithms.mosaic``."""
+
+from .alignment import (
+    TiePoints as TiePoints,
+)
+from .alignment import (
+    apply_homography as apply_homography,
+)
+from .alignment import (
+    chain_homographies as chain_homographies,
+)
+from .alignment import (
+    frame_corners as frame_corners,
+)
+from .alignment import (
+    is_plausible as is_plausible,
+)
+from .alignment import (
+    refine_homographies as refine_homographies,
+)
+from .alignment import (
+    spanning_tree as spanning_tree,
+)
+from .alignment import (
+    tie_residuals_px as tie_residuals_px,
+)
+from .blending import (
+    feather_weights as feather_weights,
+)
+from .blending import (
+    gain_compensation as gain_compensation,
+)
+from .blending import (
+    overlap_statistics as overlap_statistics,
+)
+from .blending import (
+    warp_maps as warp_maps,
+)
+from .compose import (
+    compose_block as compose_block,
+)
+from .compose import (
+    gains_and_coverage as gains_and_coverage,
+)
+from .compose import (
+    output_box as output_box,
+)
+from .features import (
+    detect as detect,
+)
+from .features import (
+    detect_sift as detect_sift,
+)
+from .features import (
+    detector_name as detector_name,
+)
+from .features import (
+    match as match,
+)
+from .features import (
+    match_ratio as match_ratio,
+)
+from .grid import (
+    MAX_OUTPUT_PIXELS as MAX_OUTPUT_PIXELS,
+)
+from .grid import (
+    map_grid as map_grid,
+)
+from .grid import (
+    pixel_grid as pixel_grid,
+)
+from .homography import (
+    estimate_fundamental as estimate_fundamental,
+)
+from .homography import (
+    estimate_homography as estimate_homography,
+)
+from .homography import (
+    spread_subset as spread_subset,
+)
+from .pairing import (
+    candidate_pairs as candidate_pairs,
+)
+from .pairing import (
+    local_metres as local_metres,
+)

@@ -1,0 +1,103 @@
+"""A mosaic's pixels, window by window: each frame's box on the output grid, gains and the coverage outline
+from a low-resolution render, and one output window warped, gain-corrected and feather-blended (Brown &
+Lowe 2007; OpenCV ``detail::FeatherBlender``). Memory depends on the window and frame size, never on the
+size of the mosaic."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+import numpy as np
+
+from workers.algorithms.mosaic.alignment import apply_homography, frame_corners
+from workers.algorithms.mosaic.blending import feather_weights, gain_compensation, overlap_statistics, warp_maps
+
+OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains and the footprint
+
+
+def output_box(to_frame: np.ndarray, frame: dict[str, Any], width: int, height: int) -> tuple[int, int, int, int]:
+    """Output pixel bbox (x0, y0, x1, y1) of a frame, clipped to the grid."""
+    c = apply_homography(np.linalg.inv(to_frame), frame_corners(frame["width"], frame["height"]))
+    x0, y0 = np.floor(c.min(axis=0)).astype(int) - 1
+    x1, y1 = np.ceil(c.max(axis=0)).astype(int) + 1
+    return max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+
+
+def compose_block(
+    image_of: Callable[[int], np.ndarray],
+    frames: dict[int, dict[str, Any]],
+    to_frame: dict[int, np.ndarray],
+    boxes: dict[int, tuple[int, int, int, int]],
+    gains: dict[int, np.ndarray],
+    window: tuple[int, int, int, int],
+    feather_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One output window ``(x, y, w, h)``: every frame that reaches it warped, gain-corrected and feathered.
+
+    ``image_of(k)`` gives frame ``k``'s (H, W, 3) uint8 BGR pixels (memory-mapped: only the rows and columns
+    the window needs are read). Returns (h, w, 3) uint8 RGB and (h, w) bool coverage.
+    """
+    x, y, w, h = window
+    acc = np.zeros((h, w, 3), np.float32)
+    wsum = np.zeros((h, w), np.float32)
+    for k, (bx0, by0, bx1, by1) in boxes.items():
+        if bx1 <= x or by1 <= y or bx0 >= x + w or by0 >= y + h:
+            continue
+        f = frames[k]
+        map_x, map_y = warp_maps(to_frame[k], x, y, w, h)
+        weight = feather_weights(map_x, map_y, f["width"], f["height"], feather_px)
+        if not weight.any():
+            continue
+        pixels = _sample(image_of(k), map_x, map_y, weight > 0)
+        acc += weight[..., None] * pixels * gains[k][None, None, :].astype(np.float32)
+        wsum += weight
+    mask = wsum > 0
+    bgr = np.clip(acc / np.maximum(wsum, 1e-6)[..., None] + 0.5, 0, 255).astype(np.uint8)
+    bgr[~mask] = 0
+    return bgr[..., ::-1], mask
+
+
+def _sample(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` (H, W, 3) at the maps, reading only the rows/columns needed."""
+    xs, ys = map_x[valid], map_y[valid]
+    c0, r0 = max(int(math.floor(xs.min())) - 1, 0), max(int(math.floor(ys.min())) - 1, 0)
+    c1, r1 = min(int(math.ceil(xs.max())) + 2, image.shape[1]), min(int(math.ceil(ys.max())) + 2, image.shape[0])
+    crop = np.ascontiguousarray(image[r0:r1, c0:c1])
+    out = cv2.remap(crop, map_x - c0, map_y - r0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.astype(np.float32)
+
+
+def gains_and_coverage(
+    image_of: Callable[[int], np.ndarray],
+    frames: dict[int, dict[str, Any]],
+    to_frame: dict[int, np.ndarray],
+    geo: dict[str, Any],
+    enabled: bool,
+) -> tuple[dict[int, np.ndarray], dict[str, Any]]:
+    """Gains from a low-resolution render of every frame, and the mosaic's coverage outline."""
+    r = min(1.0, OVERVIEW_PX / max(geo["width"], geo["height"]))
+    lw, lh = max(1, round(geo["width"] * r)), max(1, round(geo["height"] * r))
+    low_to_out = np.diag([1 / r, 1 / r, 1.0])
+    keys = sorted(to_frame)
+    images, masks = [], []
+    for k in keys:
+        f = frames[k]
+        map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
+        inside = feather_weights(map_x, map_y, f["width"], f["height"], 2.0 / r) >= 1.0
+        image = image_of(k)
+        images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
+        masks.append(inside)
+    gains = np.ones((len(keys), 3))
+    if enabled:
+        means, counts = overlap_statistics(images, masks)
+        gains = gain_compensation(means, counts)
+    union = np.any(masks, axis=0).astype(np.uint8) if masks else np.zeros((lh, lw), np.uint8)
+    contours, _ = cv2.findContours(union, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    outline = [(c.reshape(-1, 2).astype(np.float64) + 0.5) / r for c in contours if len(c) >= 3]
+    return (
+        {k: gains[n] for n, k in enumerate(keys)},
+        {"outline_px": [o.tolist() for o in outline], "area_fraction": float(union.mean())},
+    )

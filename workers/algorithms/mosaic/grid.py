@@ -1,0 +1,43 @@
+"""The output grid of a mosaic: a north-up grid in map units over the mosaic plane, or the plane itself."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from workers.algorithms.geometry import similarity_scale
+from workers.algorithms.mosaic.alignment import apply_homography
+
+MAX_OUTPUT_PIXELS = 4_000_000_000  # a larger grid means a broken alignment, not a real flight
+
+
+def map_grid(plane_corners: np.ndarray, plane_to_map: list[list[float]]) -> dict[str, Any]:
+    """A north-up grid in map units covering every frame, at the plane's own resolution."""
+    M = np.array(plane_to_map)
+    gsd = similarity_scale(M)
+    xy = apply_homography(M, plane_corners)
+    west, north = xy[:, 0].min(), xy[:, 1].max()
+    width = math.ceil((xy[:, 0].max() - west) / gsd)
+    height = math.ceil((north - xy[:, 1].min()) / gsd)
+    affine = np.array([[gsd, 0.0, west], [0.0, -gsd, north], [0.0, 0.0, 1.0]])
+    return {
+        "width": width,
+        "height": height,
+        "transform": affine[:2].ravel().tolist(),
+        "output_to_plane": (np.linalg.inv(M) @ affine).tolist(),
+    }
+
+
+def pixel_grid(plane_corners: np.ndarray) -> dict[str, Any]:
+    """The plane itself, shifted so the mosaic starts at pixel (0, 0); no map coordinates."""
+    x0, y0 = np.floor(plane_corners.min(axis=0))
+    x1, y1 = np.ceil(plane_corners.max(axis=0))
+    shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+    return {
+        "width": int(x1 - x0),
+        "height": int(y1 - y0),
+        "transform": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        "output_to_plane": shift.tolist(),
+    }

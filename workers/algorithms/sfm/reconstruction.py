@@ -1,0 +1,434 @@
+"""Photo-triangulation: camera poses and sparse points from feature matches, in the GPS / GCP frame.
+
+``reconstruct`` is the one entry point. It (1) re-verifies every pair with a five-point essential
+matrix (OpenCV USAC, Nister 2004) and builds tracks; (2) starts either from GPS + DJI attitude
+(cameras directly from the metadata) or incrementally, as COLMAP (Schoenberger & Frahm 2016) and
+OpenSfM do: the best initial pair by inliers and triangulation angle, then frames added one by one by
+PnP (``cv2.solvePnPRansac``, SQPnP) on their 2D-3D track correspondences (or, failing that, by their
+relative pose to a registered frame), new tracks triangulated and a bundle adjustment each time the
+model has grown by a quarter; (3) moves an incremental model into the world frame by a similarity to
+the GPS positions and control points; (4) runs the final bundle adjustment with GPS priors and GCPs
+(and self-calibration when asked), rejecting outlier observations, re-admitting those that fit
+afterwards and adjusting again while many do (at most three times); (5) reports.
+
+Bundle adjustments use a spread subset of the points (``ba_points_per_frame``); every other point is
+refined with the cameras held (``bundle.refine_points``), which keeps SciPy's solver affordable.
+
+World frame: with GPS (or control points), the job's local frame ``(E - E0, N - N0, height)`` metres
+(``gcp.LocalFrame``); otherwise arbitrary, scaled so that the initial pair's baseline is 1. ``GpsFix``,
+``Attitude`` and ``rotation_from_attitude`` live in ``gcp`` (control measurements), imported here.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from workers.algorithms.geometry import Camera, vector_from_rotation
+from workers.algorithms.sfm import bundle
+from workers.algorithms.sfm.adjustment import Priors, adjust_state, gcps_triangulated, refine_all_points, to_world
+from workers.algorithms.sfm.datum import (
+    Attitude,
+    GpsFix,
+    checkpoint_rmse,
+    observations_by_frame,
+    report_gcps,
+    rotation_from_attitude,
+)
+from workers.algorithms.sfm.gcp import GroundControlPoint
+from workers.algorithms.sfm.incremental import (
+    ReconstructionState,
+    register_by_pnp,
+    register_by_relative_pose,
+    reprojection_errors,
+    state_rotations,
+    triangulate_tracks,
+)
+from workers.algorithms.sfm.tracks import PairMatches, Tracks, build_tracks, initial_pair, verify_pairs
+
+
+@dataclass(frozen=True)
+class ReconstructionOptions:
+    """Tuning of ``reconstruct``; pixels are those of the feature coordinates."""
+
+    loss: bundle.LossName = "soft_l1"  # robust loss of the bundle adjustment (see bundle.BundleOptions)
+    loss_scale_px: float = 1.0  # its f_scale, px
+    outlier_threshold_px: float = 4.0  # observations reprojecting further are dropped
+    refine_focal: bool = False  # self-calibrate the shared focal length
+    refine_k1: bool = False  # ... and radial k1
+    refine_k2: bool = False  # ... and radial k2
+    focal_sigma: float = 0.05  # 1-sigma of the initial focal length, relative (a prior when refining it)
+    min_track_length: int = 2  # frames a track must be seen in
+    initial: Literal["auto", "incremental", "attitude"] = "auto"  # auto: attitude when every frame has GPS + attitude
+    verify_threshold_px: float = 2.0  # epipolar threshold of the pair re-verification (essential matrix)
+    min_pair_inliers: int = 20  # pairs with fewer verified matches are dropped
+    pnp_threshold_px: float = 4.0  # PnP RANSAC reprojection threshold
+    min_pnp_inliers: int = 12  # a frame needs this many PnP inliers to be registered
+    min_angle_deg: float = 1.0  # a new point needs rays at least this far apart
+    init_angle_deg: float = 5.0  # initial pairs with a smaller median angle are scored down
+    ba_points_per_frame: int = 150  # points per frame in the adjustment; the others are refined with cameras held
+    gcp_sigma_m: float = 0.05  # accuracy of control point positions
+    max_nfev: int = 60  # per least-squares solve
+
+
+@dataclass(frozen=True)
+class ObservationResiduals:
+    """Every observation of an output point: ``frame`` (K,), ``point`` (K,) row of
+    ``Reconstruction.points``, ``xy`` (K, 2) observed px, ``residual`` (K, 2) projected - observed px,
+    ``inlier`` (K,) bool kept by the outlier rejection."""
+
+    frame: np.ndarray
+    point: np.ndarray
+    xy: np.ndarray
+    residual: np.ndarray
+    inlier: np.ndarray
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """Result of ``reconstruct``.
+
+    poses : frame -> (R (3, 3), C (3,)), ``X_cam = R (X - C)``, registered frames only.
+    points : (P, 3) float64 world points; point_track : (P,) int64 their track ids.
+    camera : the adjusted shared camera (``distort_ideal``).
+    residuals : per observation, see ObservationResiduals.
+    gcp_positions : GCP id -> (3,) adjusted (controls, tie points) or triangulated (checkpoints) position.
+    report : JSON-serialisable summary (see ``reconstruct``).
+    """
+
+    poses: dict[int, tuple[np.ndarray, np.ndarray]]
+    points: np.ndarray
+    point_track: np.ndarray
+    camera: Camera
+    residuals: ObservationResiduals
+    gcp_positions: dict[str, np.ndarray]
+    report: dict[str, Any]
+
+
+# -- the pipeline --------------------------------------------------------------------------------------
+def reconstruct(
+    features: Sequence[np.ndarray],
+    matches: PairMatches,
+    camera: Camera,
+    *,
+    gps: Mapping[int, GpsFix] | None = None,
+    attitude: Mapping[int, Attitude] | None = None,
+    gcps: Sequence[GroundControlPoint] = (),
+    checkpoints: Collection[str] = (),
+    frame_names: Sequence[str] | None = None,
+    options: ReconstructionOptions = ReconstructionOptions(),
+) -> Reconstruction:
+    """Camera poses, sparse points and the adjusted camera of one flight.
+
+    Parameters
+    ----------
+    features : per frame ``i`` (N_i, 2) float pixel (x, y), OpenCV convention, in the pixel frame of ``camera``.
+    matches : (i, j) -> (features of i, features of j), two (M,) int arrays of feature indices.
+    camera : initial intrinsics shared by all frames (either convention; adjusted as ``distort_ideal``).
+    gps : frame -> GpsFix, local-frame metres (``gcp.LocalFrame``), for any subset of frames.
+    attitude : frame -> Attitude (DJI gimbal angles); used with ``gps`` when every frame has both (and the
+        cameras they give fit the matches; otherwise the reconstruction starts incrementally).
+    gcps : ground control points; observations keyed by image name (``frame_names``), same pixel frame.
+    checkpoints : ids of GCPs held out of the adjustment and only compared with their triangulation.
+    frame_names : name of each frame (for GCP observations and the report); default "0", "1", ...
+
+    Returns
+    -------
+    Reconstruction. With fewer than two frames that can be registered, no poses and a report saying why.
+    ``report`` keys: frames {total, registered, not_registered {name: reason}}, world_frame, initialisation,
+    datum, points, observations, rejected_observations, rms_reprojection_px (root mean square length of
+    the kept residual vectors), per_frame {name: {rms_px, observations, gps_residual_m,
+    gps_residual_enu_m}}, gcps {id: {role, observations, rms_px, residual_m, residual_enu_m}},
+    checkpoint_rmse_m, camera (``Camera.to_json``), adjustments, seconds, notes. GPS and GCP metres only
+    in a world frame. Raises ValueError for frames, features or fixes that do not exist.
+    """
+    started = time.perf_counter()
+    _check_inputs(features, matches, gps, attitude, frame_names)
+    n = len(features)
+    names = list(frame_names) if frame_names is not None else [str(i) for i in range(n)]
+    camera = camera.with_convention("distort_ideal")
+    normalised = [camera.pixel_to_normalised(np.asarray(f, dtype=np.float64)) for f in features]
+    verified, essential = verify_pairs(
+        normalised, matches, camera.fx, options.verify_threshold_px, options.min_pair_inliers
+    )
+    state = _new_state(build_tracks(verified, options.min_track_length), features, normalised)
+    state.pairs, state.essential, state.normalised = verified, essential, normalised
+    priors = Priors(dict(gps or {}), list(gcps), observations_by_frame(gcps, names), frozenset(checkpoints), camera.fx)
+    log: list[dict] = []
+    seeded = _seed(state, camera, options, priors, attitude or {}, log)
+    if state.registered.sum() < 2:
+        return _empty(state, camera, names, seeded, started)
+    camera = _grow(state, camera, options, priors, log)
+    _complete(state, camera, options)
+    datum = "gps_attitude" if state.world else to_world(state, camera, priors, options)
+    for _ in range(3):  # adjust, then re-admit what now fits, until little changes (COLMAP's global loop)
+        camera, final = adjust_state(state, camera, options, priors, self_calibrate=True)
+        log.append(final)
+        if _complete(state, camera, options) < 0.02 * state.active.sum():
+            break
+    return _result(
+        state,
+        camera,
+        priors,
+        names,
+        {"initialisation": seeded, "datum": datum, "log": log, "seconds": time.perf_counter() - started},
+    )
+
+
+def _seed(
+    state: ReconstructionState,
+    camera: Camera,
+    options: ReconstructionOptions,
+    priors: Priors,
+    attitude: Mapping[int, Attitude],
+    log: list,
+) -> str:
+    """Register the first frames: from GPS + attitude, or the best initial pair. Returns the method."""
+    n = len(state.registered)
+    full = all(f in attitude and f in priors.gps for f in range(n))
+    if (options.initial == "attitude" or (options.initial == "auto" and full)) and _seed_attitude(
+        state, camera, options, priors, attitude, log
+    ):
+        return "gps_attitude"
+    pair = initial_pair(
+        state.pairs,
+        state.essential,
+        state.normalised,
+        options.min_pair_inliers,
+        options.min_angle_deg,
+        options.init_angle_deg,
+    )
+    if pair is None:
+        return "incremental: no pair with enough inliers and baseline"
+    i, j, R, t = pair
+    state.rvecs[j], state.centres[j] = cv2.Rodrigues(R)[0].ravel(), -R.T @ t
+    state.registered[[i, j]] = True
+    state.gauge = (i, j)
+    triangulate_tracks(
+        state, camera, np.ones(len(state.has_point), bool), options.outlier_threshold_px, options.min_angle_deg
+    )
+    log.append(adjust_state(state, camera, options, priors, self_calibrate=False)[1])
+    return f"incremental from frames {i} and {j}"
+
+
+def _seed_attitude(
+    state: ReconstructionState,
+    camera: Camera,
+    options: ReconstructionOptions,
+    priors: Priors,
+    attitude: Mapping[int, Attitude],
+    log: list,
+) -> bool:
+    """Cameras straight from GPS + attitude, then an adjustment. False, with the state reset, when the
+    metadata poses triangulate under a quarter of the tracks seen twice (attitude in another convention,
+    or wrong): the caller then starts incrementally."""
+    for f in range(len(state.registered)):
+        if f in attitude and f in priors.gps:
+            state.rvecs[f] = vector_from_rotation(rotation_from_attitude(attitude[f]))
+            state.centres[f], state.registered[f] = priors.gps[f].position, True
+    tr = state.tracks
+    seen_twice = int((np.bincount(tr.track[state.registered[tr.frame]], minlength=len(state.has_point)) >= 2).sum())
+    loose = 0.05 * max(camera.width, camera.height)  # metadata poses are a few degrees off
+    if triangulate_tracks(
+        state, camera, np.ones(len(state.has_point), bool), loose, options.min_angle_deg
+    ) < 0.25 * max(seen_twice, 1):
+        state.notes.append(
+            "GPS + attitude cameras do not fit the matches (attitude convention?): started incrementally instead"
+        )
+        state.registered[:], state.has_point[:], state.active[:] = False, False, True
+        state.rvecs[:], state.centres[:] = 0.0, 0.0
+        return False
+    state.world = True
+    log.append(adjust_state(state, camera, options, priors, self_calibrate=False)[1])
+    return True
+
+
+def _grow(
+    state: ReconstructionState, camera: Camera, options: ReconstructionOptions, priors: Priors, log: list
+) -> Camera:
+    """Register frames by PnP (else by relative pose), most 2D-3D matches first; adjust whenever the model
+    grows by a quarter. A frame that fails is tried again once its matches to the model grow by a quarter."""
+    tr = state.tracks
+    tried: dict[int, int] = {}
+    last = int(state.registered.sum())
+    while True:
+        live = state.active & state.has_point[tr.track] & ~state.registered[tr.frame]
+        counts = np.bincount(tr.frame[live], minlength=len(state.registered))
+        todo = [
+            int(f)
+            for f in np.flatnonzero(~state.registered)
+            if counts[f] >= 3 and counts[f] > 1.25 * tried.get(int(f), 0)
+        ]
+        if not todo:
+            for f in np.flatnonzero(~state.registered):
+                state.reasons.setdefault(int(f), f"only {counts[f]} matches to reconstructed points")
+            break
+        frame = int(max(todo, key=lambda f: counts[f]))
+        tried[frame] = int(counts[frame])
+        why = register_by_pnp(state, frame, camera, options.min_pnp_inliers, options.pnp_threshold_px)
+        if why:
+            why = register_by_relative_pose(state, frame) and why  # the PnP reason when both fail
+        if why:
+            state.reasons[frame] = why
+            continue
+        state.reasons.pop(frame, None)
+        seen = np.zeros(len(state.has_point), bool)
+        seen[tr.track[tr.frame == frame]] = True
+        triangulate_tracks(state, camera, seen, options.outlier_threshold_px, options.min_angle_deg)
+        if state.registered.sum() >= 1.25 * last:
+            last = int(state.registered.sum())
+            camera, stats = adjust_state(state, camera, options, priors, self_calibrate=False)
+            log.append(stats)
+    return camera
+
+
+def _complete(state: ReconstructionState, camera: Camera, options: ReconstructionOptions) -> int:
+    """Give rejected observations a second chance against the current model (they were judged with
+    rougher cameras), then triangulate every track that can be and refine all points. Returns how many
+    observations joined the model."""
+    tr = state.tracks
+    before = int((state.active & state.has_point[tr.track] & state.registered[tr.frame]).sum())
+    state.active[~state.has_point[tr.track]] = True
+    sel = np.flatnonzero(state.has_point[tr.track] & ~state.active & state.registered[tr.frame])
+    R, C = state_rotations(state)[tr.frame[sel]], state.centres[tr.frame[sel]]
+    fits = reprojection_errors(camera, R, C, state.points[tr.track[sel]], state.xy[sel]) <= options.outlier_threshold_px
+    state.active[sel[fits]] = True
+    triangulate_tracks(
+        state, camera, np.ones(len(state.has_point), bool), options.outlier_threshold_px, options.min_angle_deg
+    )
+    refine_all_points(state, camera, options.outlier_threshold_px)
+    return int((state.active & state.has_point[tr.track] & state.registered[tr.frame]).sum()) - before
+
+
+def _new_state(tracks: Tracks, features: Sequence[np.ndarray], normalised: Sequence[np.ndarray]) -> ReconstructionState:
+    n = len(features)
+    xy = np.array([features[f][k] for f, k in zip(tracks.frame, tracks.feature, strict=True)]).reshape(-1, 2)
+    ideal = np.array([normalised[f][k] for f, k in zip(tracks.frame, tracks.feature, strict=True)]).reshape(-1, 2)
+    return ReconstructionState(
+        tracks,
+        xy.astype(np.float64),
+        np.column_stack([ideal, np.ones(len(ideal))]),
+        np.zeros((n, 3)),
+        np.zeros((n, 3)),
+        np.zeros(n, bool),
+        np.zeros((tracks.n_tracks, 3)),
+        np.zeros(tracks.n_tracks, bool),
+        np.ones(len(tracks.track), bool),
+    )
+
+
+def _check_inputs(
+    features: Sequence[np.ndarray],
+    matches: PairMatches,
+    gps: Mapping | None,
+    attitude: Mapping | None,
+    names: Sequence[str] | None,
+) -> None:
+    n = len(features)
+    if any(np.ndim(f) != 2 or np.shape(f)[1] != 2 for f in features):
+        raise ValueError("features must be one (N_i, 2) array of pixel (x, y) per frame")
+    if names is not None and len(names) != n:
+        raise ValueError(f"frame_names has {len(names)} names for {n} frames")
+    for (i, j), (fi, fj) in matches.items():
+        if not (0 <= i < n and 0 <= j < n):
+            raise ValueError(f"pair {(i, j)} refers to a frame outside 0..{n - 1}")
+        if len(fi) and (np.max(fi) >= len(features[i]) or np.max(fj) >= len(features[j])):
+            raise ValueError(f"pair {(i, j)} refers to a feature index beyond its frame's features")
+    for what, table in (("gps", gps or {}), ("attitude", attitude or {})):
+        if any(not 0 <= f < n for f in table):
+            raise ValueError(f"{what} refers to a frame outside 0..{n - 1}")
+
+
+# -- results -------------------------------------------------------------------------------------------
+def _result(state: ReconstructionState, camera: Camera, priors: Priors, names: list[str], info: dict) -> Reconstruction:
+    tr = state.tracks
+    out = np.flatnonzero(state.has_point)
+    row = np.full(len(state.has_point), -1)
+    row[out] = np.arange(len(out))
+    sel = state.has_point[tr.track] & state.registered[tr.frame]
+    frames = tr.frame[sel]
+    cam = np.einsum("kij,kj->ki", state_rotations(state)[frames], state.points[tr.track[sel]] - state.centres[frames])
+    residuals = ObservationResiduals(
+        frames, row[tr.track[sel]], state.xy[sel], camera.project(cam) - state.xy[sel], state.active[sel]
+    )
+    poses = {int(f): (state_rotations(state)[f], state.centres[f].copy()) for f in np.flatnonzero(state.registered)}
+    triangulated = gcps_triangulated(state, camera, priors)
+    gcp_report, positions = report_gcps(
+        priors.gcps,
+        priors.gcp_obs,
+        priors.checkpoints,
+        state.registered,
+        info["log"][-1]["gcp"],
+        triangulated,
+        state.world,
+    )
+    inl = residuals.inlier
+    report = {
+        "frames": _frames_report(state, names),
+        "world_frame": "local (E - E0, N - N0, height) metres"
+        if state.world
+        else "arbitrary: scale set by the initial pair's baseline = 1",
+        "initialisation": info["initialisation"],
+        "datum": info["datum"],
+        "points": len(out),
+        "observations": int(inl.sum()),
+        "rejected_observations": int((~inl).sum()),
+        "rms_reprojection_px": _num(bundle.rms(residuals.residual[inl])),
+        "per_frame": _per_frame(state, priors, names, residuals),
+        "gcps": gcp_report,
+        "checkpoint_rmse_m": checkpoint_rmse(gcp_report),
+        "camera": camera.to_json(),
+        "adjustments": [{k: v for k, v in s.items() if k != "gcp"} for s in info["log"]],
+        "seconds": round(info["seconds"], 3),
+        "notes": state.notes,
+    }
+    return Reconstruction(poses, state.points[out], out.astype(np.int64), camera, residuals, positions, report)
+
+
+def _frames_report(state: ReconstructionState, names: list[str]) -> dict:
+    missing = {
+        names[f]: state.reasons.get(int(f), "no verified matches to the registered frames")
+        for f in np.flatnonzero(~state.registered)
+    }
+    return {"total": len(names), "registered": int(state.registered.sum()), "not_registered": missing}
+
+
+def _per_frame(state: ReconstructionState, priors: Priors, names: list[str], residuals: ObservationResiduals) -> dict:
+    by_frame = bundle.rms_by_group(residuals.residual[residuals.inlier], residuals.frame[residuals.inlier])
+    out: dict[str, dict] = {}
+    for f in np.flatnonzero(state.registered):
+        rms_px, count = by_frame.get(int(f), (float("nan"), 0))
+        entry: dict[str, Any] = {"rms_px": _num(rms_px), "observations": count}
+        if state.world and int(f) in priors.gps:
+            enu = state.centres[f] - np.asarray(priors.gps[int(f)].position)
+            entry.update(gps_residual_m=_num(float(np.linalg.norm(enu))), gps_residual_enu_m=[_num(v) for v in enu])
+        out[names[f]] = entry
+    return out
+
+
+def _empty(state: ReconstructionState, camera: Camera, names: list[str], seeded: str, started: float) -> Reconstruction:
+    for f in range(len(names)):
+        state.reasons.setdefault(f, seeded)
+    state.registered[:] = False
+    z = np.zeros(0, np.int64)
+    residuals = ObservationResiduals(z, z, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool))
+    report = {
+        "frames": _frames_report(state, names),
+        "initialisation": seeded,
+        "points": 0,
+        "rms_reprojection_px": None,
+        "seconds": round(time.perf_counter() - started, 3),
+        "notes": state.notes,
+    }
+    return Reconstruction({}, np.zeros((0, 3)), z, camera, residuals, {}, report)
+
+
+def _num(value: float) -> float | None:
+    """A JSON-safe float (None for NaN), rounded to 6 decimals."""
+    value = float(value)
+    return None if not np.isfinite(value) else round(value, 6)
