@@ -12,8 +12,8 @@ Scenes (``tests/crack_scenes.py``, written to a temporary folder): a 400 x 300 m
   ours (``specimen.compose_views``, as ``rectify_specimen`` runs it: per raster pixel the full camera
   model, occlusion z-buffer for the mesh, Lanczos resampling, in row blocks) against OpenCV's way for a
   plate, ``cv2.undistort`` then ``cv2.warpPerspective`` with the plane's homography (Lanczos too). OpenCV has
-  no mesh rectification, so the panel row has no reference. The mean absolute grey difference between the two plate rasters
-  tells that they render the same thing.
+  no mesh rectification, so the panel row has no reference. The mean absolute grey difference between the
+  two plate rasters tells that they render the same thing.
 - **Detection and measurement**: the service's tiled detector (``cracks.detect_cracks``) and
   ``measure_cracks`` on the rectified plate, seconds per raster megapixel and peak memory (no reference:
   OpenCV has no crack detector).
