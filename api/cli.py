@@ -82,6 +82,7 @@ def _up(args: argparse.Namespace) -> int:
 
 def _process(args: argparse.Namespace) -> int:
     from workers.pipeline import PipelineError, process_directory  # noqa: PLC0415
+    from workers.workspace import JobWorkspace  # noqa: PLC0415
 
     options = dict(_parse_option(item) for item in args.set)
 
@@ -96,7 +97,7 @@ def _process(args: argparse.Namespace) -> int:
     print(file=sys.stderr)
     summary = {k: report[k] for k in ("tie_point_rms_px", "georeferenced", "crs", "gsd_m", "stage_seconds")}
     summary.update(
-        mosaic=str(args.output / "mosaic.tif"),
+        mosaic=str(JobWorkspace(args.output).mosaic_path()),
         frames_used=len(report["frames_used"]),
         frames_rejected=report["frames_rejected"],
     )

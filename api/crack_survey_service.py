@@ -115,8 +115,9 @@ def _check_on_mesh(mesh: Mesh, stages: list[dict[str, Any]]) -> None:
             worst = int(np.argmax(distances))
             if distances[worst] > tolerance:
                 raise InvalidInputError(
-                    f"stage {s} photo {photo['image']}: control point {worst} at model {model[worst].tolist()} is "
-                    f"{distances[worst]:.2f} mm from the model's surface (at most {tolerance:.2f} mm)"
+                    f"options.stages[{s}] photo {photo['image']}: control point {worst} at model "
+                    f"{model[worst].tolist()} is {distances[worst]:.2f} mm from the model's surface "
+                    f"(at most {tolerance:.2f} mm)"
                 )
 
 

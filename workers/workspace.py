@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from workers.algorithms.sfm import GCP_FILE_NAMES
+from workers.records import Alignment, Coverage, Frame, Georef, PairRecord, RejectedFrame
 
 if TYPE_CHECKING:  # imported where used: the API imports this module and must not load OpenCV
     from workers.algorithms.cracks import Crack
@@ -108,22 +109,25 @@ class JobWorkspace:
         return find_gcp_file(self.gcp_dir())
 
     # -- load_images ----------------------------------------------------------------------------
-    def load_frames(self) -> list[dict[str, Any]]:
-        return list(self._json("frames.json")["frames"])
+    def load_frames(self) -> list[Frame]:
+        """The decoded frames, in input order (``load_images``)."""
+        return [Frame.from_json(f) for f in self._json("frames.json")["frames"]]
 
-    def save_frames(self, frames: list[dict[str, Any]], rejected: list[dict[str, Any]]) -> None:
-        self._save_json("frames.json", {"frames": frames, "rejected": rejected})
+    def save_frames(self, frames: list[Frame], rejected: list[RejectedFrame]) -> None:
+        self._save_json(
+            "frames.json", {"frames": [f.to_json() for f in frames], "rejected": [r.to_json() for r in rejected]}
+        )
 
-    def load_composed_frames(self) -> dict[int, dict[str, Any]]:
+    def load_composed_frames(self) -> dict[int, Frame]:
         """Frames by index as ``compose_mosaic`` sees them: orthorectified frames may be cut to fewer rows."""
-        sizes = self.load_alignment().get("frame_sizes", {})
-        frames = {f["index"]: f for f in self.load_frames()}
-        for k, (width, height) in sizes.items():
-            frames[int(k)] = {**frames[int(k)], "width": width, "height": height}
+        frames = {f.index: f for f in self.load_frames()}
+        for k, (width, height) in self.load_alignment().frame_sizes.items():
+            frames[k] = frames[k].with_size(width, height)
         return frames
 
-    def load_rejected_frames(self) -> list[dict[str, Any]]:
-        return list(self._json("frames.json")["rejected"])
+    def load_rejected_frames(self) -> list[RejectedFrame]:
+        """The inputs ``load_images`` could not decode."""
+        return [RejectedFrame.from_json(r) for r in self._json("frames.json")["rejected"]]
 
     def _working_image_file(self, index: int) -> Path:
         return self.root / "work" / f"frame_{index:04d}.npy"
@@ -171,38 +175,34 @@ class JobWorkspace:
         with np.load(self._matches_file(pair)) as data:
             return data["index_i"], data["index_j"]
 
-    def load_pairs(self) -> list[dict[str, Any]]:
+    def load_pairs(self) -> list[PairRecord]:
         """Every pair ``match_features`` tried: frames, matches, inliers, model, whether it was accepted."""
-        return list(self._json("pairs.json")["pairs"])
+        return [PairRecord.from_json(p) for p in self._json("pairs.json")["pairs"]]
 
-    def save_pairs(self, pairs: list[dict[str, Any]]) -> None:
-        self._save_json("pairs.json", {"pairs": pairs})
+    def save_pairs(self, pairs: list[PairRecord]) -> None:
+        self._save_json("pairs.json", {"pairs": [p.to_json() for p in pairs]})
 
     # -- align_frames / orthorectify_frames, georeference, compose_mosaic -------------------------
-    def load_alignment(self) -> dict[str, Any]:
+    def load_alignment(self) -> Alignment:
         """Frame -> plane homographies, rejected frames and tie-point residuals (``align_frames``)."""
-        return dict(self._json("alignment.json"))
+        return Alignment.from_json(self._json("alignment.json"))
 
-    def save_alignment(self, alignment: dict[str, Any]) -> None:
-        self._save_json("alignment.json", alignment)
+    def save_alignment(self, alignment: Alignment) -> None:
+        self._save_json("alignment.json", alignment.to_json())
 
-    def load_homographies(self) -> dict[int, np.ndarray]:
-        """Each aligned frame's (3, 3) homography to the mosaic plane, by frame index."""
-        return {int(k): np.array(H) for k, H in self.load_alignment()["homographies"].items()}
-
-    def load_georef(self) -> dict[str, Any]:
+    def load_georef(self) -> Georef:
         """The output grid: output pixel -> plane homography, size, CRS and pixel size (``georeference``)."""
-        return dict(self._json("georef.json"))
+        return Georef.from_json(self._json("georef.json"))
 
-    def save_georef(self, georef: dict[str, Any]) -> None:
-        self._save_json("georef.json", georef)
+    def save_georef(self, georef: Georef) -> None:
+        self._save_json("georef.json", georef.to_json())
 
-    def load_coverage(self) -> dict[str, Any]:
+    def load_coverage(self) -> Coverage:
         """The mosaic's outline in output pixels and the share of the grid it covers (``compose_mosaic``)."""
-        return dict(self._json("coverage.json"))
+        return Coverage.from_json(self._json("coverage.json"))
 
-    def save_coverage(self, coverage: dict[str, Any]) -> None:
-        self._save_json("coverage.json", coverage)
+    def save_coverage(self, coverage: Coverage) -> None:
+        self._save_json("coverage.json", coverage.to_json())
 
     def mosaic_scratch_path(self) -> Path:
         """The GeoTIFF ``compose_mosaic`` writes block by block before it becomes the COG."""

@@ -55,10 +55,10 @@ def _load_step_cog(db: Any, settings: Any, job_id: int, step: int) -> Path:
     ws = job_workspace(settings.data_dir, job_id)
     count = len(ws.load_config().get("stages", [])) if ws.has_config() else 0  # options.stages
     if not 0 <= step < count:
-        raise NotFoundError(f"crack survey {job_id} has no load stage {step} (it has {count})")
+        raise NotFoundError(f"crack survey {job_id} has no load step {step} (it has {count})")
     path = ws.load_step_cog_path(step)
     if not path.exists():
-        raise ConflictError(f"load stage {step} of crack survey {job_id} is not rectified yet (status: {job.status})")
+        raise ConflictError(f"load step {step} of crack survey {job_id} is not rectified yet (status: {job.status})")
     return path
 
 
@@ -83,7 +83,7 @@ def load_step_tile(job_id: int, step: int, z: int, x: int, y: int, db: DbDep, se
     """A 256 px PNG tile of load step ``step`` (0-based, the order of ``options.stages``) of a crack survey,
     rectified onto the specimen."""
     path = _load_step_cog(db, settings, job_id, step)
-    return _tile_response(path, z, x, y, f"load stage {step} of crack survey {job_id}")
+    return _tile_response(path, z, x, y, f"load step {step} of crack survey {job_id}")
 
 
 @router.get("/{job_id}/load-steps/{step}/tilejson.json")
@@ -93,7 +93,7 @@ def load_step_tilejson(job_id: int, step: int, request: Request, db: DbDep, sett
     (X, Y) = (col, row) * mm_per_px, mm (``report.json``)."""
     path = _load_step_cog(db, settings, job_id, step)
     template = request.url_for("load_step_tile", job_id=job_id, step=step, z=0, x=0, y=0)
-    return _tilejson(path, template, f"crack survey {job_id} stage {step}")
+    return _tilejson(path, template, f"crack survey {job_id} load step {step}")
 
 
 # The former paths of the two routes above (a load step was called a stage), kept for links and clients made

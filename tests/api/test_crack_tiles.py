@@ -122,11 +122,11 @@ def test_crack_paths_lie_on_dark_pixels_of_their_load_step_tiles(survey: Survey,
 def test_load_step_tiles_outside_unknown_or_not_yet_written(survey: Survey, finished: dict[str, Any]) -> None:
     job_id, client = finished["id"], survey.client
     for path, fragment in [
-        (f"/tiles/{job_id}/load-steps/0/2/4/0.png", "outside load stage 0 of crack survey"),
+        (f"/tiles/{job_id}/load-steps/0/2/4/0.png", "outside load step 0 of crack survey"),
         (f"/tiles/{job_id}/load-steps/0/0/0/1.png", "outside"),
         (f"/tiles/{job_id}/load-steps/1/27/0/0.png", "does not exist"),
-        (f"/tiles/{job_id}/load-steps/2/tilejson.json", "has no load stage 2 (it has 2)"),
-        (f"/tiles/{job_id}/load-steps/-1/0/0/0.png", "has no load stage -1"),
+        (f"/tiles/{job_id}/load-steps/2/tilejson.json", "has no load step 2 (it has 2)"),
+        (f"/tiles/{job_id}/load-steps/-1/0/0/0.png", "has no load step -1"),
         ("/tiles/999/load-steps/0/tilejson.json", "crack survey 999 not found"),
         (f"/tiles/{job_id}/tilejson.json", "has no mosaic"),
     ]:

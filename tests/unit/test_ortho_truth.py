@@ -63,7 +63,7 @@ def test_true_ground_reprojects_where_the_photos_show_it(ortho) -> None:
 def test_orthomosaic_shows_the_ground_at_its_map_position(ortho) -> None:
     """Where the terrain is at the ortho plane's height, every mosaic pixel shows the texture of that spot."""
     flight, report, ws = ortho
-    z0 = ws.load_alignment()["ground_z"]
+    z0 = ws.load_alignment().ground_z
     with rasterio.open(ws.mosaic_path()) as src:
         assert src.crs.to_epsg() == flight.epsg
         rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)

@@ -42,7 +42,7 @@ def tilted(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, d
 
 def test_frame_corners_within_one_pixel_of_truth(tilted) -> None:
     flight, report, ws = tilted
-    assert len(ws.load_alignment()["homographies"]) == 10 and not report["frames_rejected"]
+    assert len(ws.load_alignment().homographies) == 10 and not report["frames_rejected"]
     errors = corner_errors(flight, ws)  # the mosaic plane is the reference frame's: truth there is inv(G_ref) G_k
     assert errors.max() < 1.0, f"worst corner {errors.max():.3f} px"
 
@@ -85,16 +85,16 @@ def test_gps_flight_is_placed_within_one_gsd(nadir) -> None:
     flight, report, ws = nadir
     assert report["georeferenced"] and report["crs"] == f"EPSG:{flight.epsg}"
     geo, align = ws.load_georef(), ws.load_alignment()
-    plane_to_map = np.array(geo["plane_to_map"])
+    plane_to_map = geo.plane_to_map
     errors = []
-    for k, H in align["homographies"].items():
+    for k, H in align.homographies.items():
         corners = frame_corners_cv(flight)
         predicted = apply_homography(plane_to_map @ np.array(H), corners)
         truth = apply_homography(flight.texture_to_utm @ flight.homographies[int(k)], corners)
         errors.append(np.linalg.norm(predicted - truth, axis=1))
     worst = float(np.max(errors))
     assert worst < flight.gsd_m, f"worst corner {worst:.4f} m, GSD {flight.gsd_m} m"
-    ref = flight.homographies[align["reference"]]  # the plane has the reference frame's scale
+    ref = flight.homographies[align.reference]  # the plane has the reference frame's scale
     assert abs(report["gsd_m"] - flight.gsd_m * np.sqrt(abs(np.linalg.det(ref[:2, :2])))) < 0.01 * flight.gsd_m
 
 
@@ -143,8 +143,8 @@ def corner_errors(flight: SyntheticFlight, ws: JobWorkspace) -> np.ndarray:
     """Every frame corner's distance to its truth in the reference frame's plane, after removing the
     global similarity, px."""
     align = ws.load_alignment()
-    homs = {int(k): np.array(H) for k, H in align["homographies"].items()}
-    ref = np.linalg.inv(flight.homographies[align["reference"]])
+    homs = align.homographies
+    ref = np.linalg.inv(flight.homographies[align.reference])
     corners = frame_corners_cv(flight)
     predicted = np.concatenate([apply_homography(homs[k], corners) for k in sorted(homs)])
     truth = np.concatenate([apply_homography(ref @ flight.homographies[k], corners) for k in sorted(homs)])

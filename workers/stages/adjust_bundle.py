@@ -26,7 +26,8 @@ from workers.algorithms.sfm import (
     scale_observations,
 )
 from workers.config import MosaicConfig
-from workers.pipeline import PipelineError
+from workers.pipeline import PipelineError, option_camera
+from workers.records import Frame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 DEFAULT_FOCAL = 0.85  # focal length / longest side when EXIF says nothing (a normal survey lens)
@@ -36,10 +37,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     """Write ``cameras.json``: adjusted camera, poses by frame index, ground height and the report."""
     progress(0.0, "tracks and initial cameras")
     frames = ws.load_frames()
-    rows = {f["index"]: r for r, f in enumerate(frames)}
-    features = [ws.load_features(f["index"])[0].astype(np.float64) for f in frames]
-    pairs = [p for p in ws.load_pairs() if p["accepted"]]
-    matches = {(rows[p["i"]], rows[p["j"]]): ws.load_match_indices((p["i"], p["j"])) for p in pairs}
+    rows = {f.index: r for r, f in enumerate(frames)}
+    features = [ws.load_features(f.index)[0].astype(np.float64) for f in frames]
+    pairs = [p for p in ws.load_pairs() if p.accepted]
+    matches = {(rows[p.i], rows[p.j]): ws.load_match_indices(p.pair) for p in pairs}
     camera, camera_source = initial_camera(cfg, frames[0])
     world = local_frame(frames, cfg.min_gps_frames)
     gps = _gps(frames, world, cfg.gps_sigma_m) if world else None
@@ -60,7 +61,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         attitude=_attitudes(frames),
         gcps=gcps,
         checkpoints=cfg.checkpoints,
-        frame_names=[f["name"] for f in frames],
+        frame_names=[f.name for f in frames],
         options=options,
     )
     if len(result.poses) < 2:
@@ -74,12 +75,12 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             "world": _world_json(world),
             "camera": result.camera.to_json(),
             "camera_source": camera_source,
-            "poses": {frames[r]["index"]: {"R": R.tolist(), "C": C.tolist()} for r, (R, C) in result.poses.items()},
+            "poses": {frames[r].index: {"R": R.tolist(), "C": C.tolist()} for r, (R, C) in result.poses.items()},
             "ground_z": ground_z,
             "not_registered": [
-                {"index": f["index"], "name": f["name"], "reason": reason}
+                {"index": f.index, "name": f.name, "reason": reason}
                 for f in frames
-                if (reason := result.report["frames"]["not_registered"].get(f["name"]))
+                if (reason := result.report["frames"]["not_registered"].get(f.name))
             ],
             "report": report,
             "details": result.report,
@@ -89,18 +90,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     return {k: report[k] for k in ("registered", "total", "rms_px", "points", "datum")}
 
 
-def initial_camera(cfg: MosaicConfig, frame: dict[str, Any]) -> tuple[Camera, str]:
+def initial_camera(cfg: MosaicConfig, frame: Frame) -> tuple[Camera, str]:
     """The starting camera in working pixels: the given calibration, else EXIF's 35 mm focal length."""
-    scale, width, height = frame["scale"], frame["width"], frame["height"]
+    scale, width, height = frame.scale, frame.width, frame.height
     if cfg.camera is not None:
-        try:
-            given = Camera.from_json(cfg.camera)
-        except ValueError as exc:
-            raise PipelineError(f"options.camera: {exc}") from None
-        if (given.width, given.height) != (frame["orig_width"], frame["orig_height"]):
+        given = option_camera(cfg.camera, "camera")
+        if (given.width, given.height) != (frame.orig_width, frame.orig_height):
             raise PipelineError(
                 f"options.camera is for {given.width}x{given.height} px photos, but "
-                f"{frame['name']} is {frame['orig_width']}x{frame['orig_height']}"
+                f"{frame.name} is {frame.orig_width}x{frame.orig_height}"
             )
         return given.replace(
             width=width,
@@ -110,15 +108,15 @@ def initial_camera(cfg: MosaicConfig, frame: dict[str, Any]) -> tuple[Camera, st
             cx=(given.cx + 0.5) * scale - 0.5,
             cy=(given.cy + 0.5) * scale - 0.5,
         ), "calibration"
-    f35 = frame.get("focal_length_35mm")
+    f35 = frame.focal_length_35mm
     f = f35 / 36.0 * max(width, height) if f35 else DEFAULT_FOCAL * max(width, height)
     source = f"EXIF 35 mm focal length {f35:g} mm" if f35 else f"assumed focal = {DEFAULT_FOCAL} x longest side"
     return Camera(width, height, f, f, (width - 1) / 2, (height - 1) / 2), source
 
 
-def local_frame(frames: list[dict[str, Any]], min_frames: int) -> LocalFrame | None:
+def local_frame(frames: list[Frame], min_frames: int) -> LocalFrame | None:
     """The job's metric frame around the GPS positions (UTM, shifted to a round origin), if enough have GPS."""
-    lonlat = np.array([[f["gps"]["lon"], f["gps"]["lat"]] for f in frames if f.get("gps")])
+    lonlat = np.array([[gps["lon"], gps["lat"]] for f in frames if (gps := f.gps)])
     if len(lonlat) < min_frames:
         return None
     epsg = utm_epsg(float(lonlat[:, 1].mean()), float(lonlat[:, 0].mean()))
@@ -126,33 +124,36 @@ def local_frame(frames: list[dict[str, Any]], min_frames: int) -> LocalFrame | N
     return LocalFrame(epsg, float(origin[0]), float(origin[1]))
 
 
-def _gps(frames: list[dict[str, Any]], world: LocalFrame, sigma: float) -> dict[int, GpsFix]:
+def _gps(frames: list[Frame], world: LocalFrame, sigma: float) -> dict[int, GpsFix]:
     out = {}
     for r, f in enumerate(frames):
-        g = f.get("gps")
+        g = f.gps
         if g and g.get("alt") is not None:
             xyz = world.from_lonlat(np.array([[g["lon"], g["lat"], g["alt"]]]))[0]
             out[r] = GpsFix(tuple(map(float, xyz)), sigma_h=sigma, sigma_v=2.0 * sigma)  # type: ignore[arg-type]
     return out
 
 
-def _attitudes(frames: list[dict[str, Any]]) -> dict[int, Attitude] | None:
-    if not all(f.get("yaw") is not None and f.get("pitch") is not None for f in frames):
+def _attitudes(frames: list[Frame]) -> dict[int, Attitude] | None:
+    angles = [(f.yaw, f.pitch, f.roll or 0.0) for f in frames]
+    if any(yaw is None or pitch is None for yaw, pitch, _ in angles):
         return None
-    return {r: Attitude(float(f["yaw"]), float(f["pitch"]), float(f.get("roll") or 0.0)) for r, f in enumerate(frames)}
+    return {
+        r: Attitude(float(yaw or 0.0), float(pitch or 0.0), float(roll)) for r, (yaw, pitch, roll) in enumerate(angles)
+    }
 
 
-def _gcps(ws: JobWorkspace, frames: list[dict[str, Any]], world: LocalFrame) -> list[GroundControlPoint]:
+def _gcps(ws: JobWorkspace, frames: list[Frame], world: LocalFrame) -> list[GroundControlPoint]:
     """The job's GCPs with observations in working pixels (every frame of a job has one scale)."""
     path = ws.gcp_file()
     if path is None:
         return []
-    sizes = {f["name"]: (f["orig_width"], f["orig_height"]) for f in frames}
+    sizes = {f.name: (f.orig_width, f.orig_height) for f in frames}
     try:
         gcps = parse_gcp_file(path.name, path.read_text(encoding="utf-8"), sizes, world)
     except ValueError as exc:
         raise PipelineError(f"{path.name}: {exc}") from None
-    return scale_observations(gcps, frames[0]["scale"])
+    return scale_observations(gcps, frames[0].scale)
 
 
 def _world_json(world: LocalFrame | None) -> dict[str, Any]:
@@ -167,10 +168,10 @@ def _world_json(world: LocalFrame | None) -> dict[str, Any]:
 
 
 def triangulation_report(
-    result: Reconstruction, frames: list[dict[str, Any]], start: Camera, camera_source: str
+    result: Reconstruction, frames: list[Frame], start: Camera, camera_source: str
 ) -> dict[str, Any]:
     """The report's ``triangulation`` section (what the viewer's quality card shows)."""
-    rep, scale = result.report, frames[0]["scale"]
+    rep, scale = result.report, frames[0].scale
     per_frame = rep.get("per_frame", {})
     gps = [e["gps_residual_m"] for e in per_frame.values() if e.get("gps_residual_m") is not None]
     adjusted = result.camera
@@ -194,10 +195,10 @@ def triangulation_report(
         },
         "images": [
             {
-                "name": f["name"],
-                "rms_px": per_frame.get(f["name"], {}).get("rms_px"),
-                "observations": per_frame.get(f["name"], {}).get("observations", 0),
-                "gps_residual_m": per_frame.get(f["name"], {}).get("gps_residual_m"),
+                "name": f.name,
+                "rms_px": per_frame.get(f.name, {}).get("rms_px"),
+                "observations": per_frame.get(f.name, {}).get("observations", 0),
+                "gps_residual_m": per_frame.get(f.name, {}).get("gps_residual_m"),
             }
             for f in frames
         ],

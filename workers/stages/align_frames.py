@@ -16,6 +16,7 @@ from workers.algorithms.mosaic import (
 )
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
+from workers.records import Alignment, DroppedPair, Frame, PairRecord, PairResidual, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 MAX_ROUNDS = 5  # adjustments, each after dropping the worst inconsistent pair
@@ -24,9 +25,9 @@ MAX_PAIR_RMS_FACTOR = 1.5  # a pair is inconsistent above this multiple of the R
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Read ``pairs.json`` and the tie points; write ``alignment.json`` (frame -> plane homographies)."""
-    frames = {f["index"]: f for f in ws.load_frames()}
-    pairs = [p for p in ws.load_pairs() if p["accepted"]]
-    dropped: list[dict[str, Any]] = []
+    frames = {f.index: f for f in ws.load_frames()}
+    pairs = [p for p in ws.load_pairs() if p.accepted]
+    dropped: list[DroppedPair] = []
     for round_ in range(MAX_ROUNDS):
         progress(round_ / MAX_ROUNDS, f"adjustment round {round_ + 1}")
         root, refined, ties = _adjust(ws, cfg, frames, pairs)
@@ -36,30 +37,28 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         # A pair whose tie points stay far apart once every other pair has had its say is a false
         # overlap (repeated texture, moving objects): drop it and adjust again without it.
         dropped += [
-            {**p, "reason": "inconsistent with the other pairs after adjustment"}
-            for p in pairs
-            if (p["i"], p["j"]) in bad
+            DroppedPair(p.i, p.j, "inconsistent with the other pairs after adjustment") for p in pairs if p.pair in bad
         ]
-        pairs = [p for p in pairs if (p["i"], p["j"]) not in bad]
-    sizes = {k: (frames[k]["width"], frames[k]["height"]) for k in refined}
+        pairs = [p for p in pairs if p.pair not in bad]
+    sizes = {k: (frames[k].width, frames[k].height) for k in refined}
     rejected = _rejections(frames, refined, sizes)
-    used = {k: H for k, H in refined.items() if k not in {r["index"] for r in rejected}}
+    used = {k: H for k, H in refined.items() if k not in {r.index for r in rejected}}
     residuals = tie_residuals_px(used, ties)
     all_res = np.concatenate(list(residuals.values())) if residuals else np.zeros(0)
     rms = float(np.sqrt(np.mean(all_res**2))) if len(all_res) else None
     ws.save_alignment(
-        {
-            "reference": root,
-            "homographies": {str(k): H.tolist() for k, H in sorted(used.items())},
-            "rejected": rejected,
-            "tie_point_rms_px": rms,
-            "tie_points": len(all_res),
-            "dropped_pairs": [{"i": p["i"], "j": p["j"], "reason": p["reason"]} for p in dropped],
-            "pairs": [
-                {"i": i, "j": j, "rms_px": float(np.sqrt(np.mean(r**2))), "max_px": float(r.max())}
+        Alignment(
+            reference=root,
+            homographies=dict(sorted(used.items())),
+            rejected=rejected,
+            tie_point_rms_px=rms,
+            tie_points=len(all_res),
+            dropped_pairs=dropped,
+            pair_residuals=[
+                PairResidual(i, j, float(np.sqrt(np.mean(r**2))), float(r.max()))
                 for (i, j), r in sorted(residuals.items())
             ],
-        }
+        )
     )
     progress(1.0, f"{len(used)} frames aligned")
     return {"reference": root, "frames_aligned": len(used), "frames_rejected": len(rejected), "tie_point_rms_px": rms}
@@ -68,23 +67,19 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
 def _adjust(
     ws: JobWorkspace,
     cfg: MosaicConfig,
-    frames: dict[int, dict[str, Any]],
-    pairs: list[dict[str, Any]],
+    frames: dict[int, Frame],
+    pairs: list[PairRecord],
 ) -> tuple[int, dict[int, np.ndarray], dict[tuple[int, int], TiePoints]]:
     """Spanning tree over ``pairs``, chained initial homographies, then the global adjustment."""
-    root, parent = spanning_tree(max(frames) + 1, {(p["i"], p["j"]): float(p["inliers"]) for p in pairs})
+    root, parent = spanning_tree(max(frames) + 1, {p.pair: float(p.inliers) for p in pairs})
     if not parent:
         raise PipelineError(
             "no two frames overlap: no pair had enough matching points "
             f"(at least {cfg.min_inliers} homography inliers); check the photos overlap"
         )
-    initial = chain_homographies(root, parent, {(p["i"], p["j"]): np.array(p["H"]) for p in pairs})
-    ties = {
-        (p["i"], p["j"]): TiePoints(*ws.load_matches((p["i"], p["j"])))
-        for p in pairs
-        if p["i"] in initial and p["j"] in initial
-    }
-    sizes = {k: (frames[k]["width"], frames[k]["height"]) for k in initial}
+    initial = chain_homographies(root, parent, {p.pair: p.model for p in pairs if p.model is not None})
+    ties = {p.pair: TiePoints(*ws.load_matches(p.pair)) for p in pairs if p.i in initial and p.j in initial}
+    sizes = {k: (frames[k].width, frames[k].height) for k in initial}
     return (
         root,
         refine_homographies(
@@ -110,19 +105,13 @@ def _inconsistent_pairs(
 
 
 def _rejections(
-    frames: dict[int, dict[str, Any]], refined: dict[int, np.ndarray], sizes: dict[int, tuple[int, int]]
-) -> list[dict[str, Any]]:
+    frames: dict[int, Frame], refined: dict[int, np.ndarray], sizes: dict[int, tuple[int, int]]
+) -> list[RejectedFrame]:
     out = []
     for k, f in sorted(frames.items()):
         if k not in refined:
-            out.append(
-                {
-                    "index": k,
-                    "name": f["name"],
-                    "reason": "no overlap with the other frames "
-                    "(not enough matching points with any frame it was compared with)",
-                }
-            )
+            reason = "no overlap with the other frames (not enough matching points with any frame it was compared with)"
+            out.append(RejectedFrame(k, f.name, reason))
         elif not is_plausible(refined[k], *sizes[k]):
-            out.append({"index": k, "name": f["name"], "reason": "alignment folds or stretches the frame"})
+            out.append(RejectedFrame(k, f.name, "alignment folds or stretches the frame"))
     return out

@@ -12,6 +12,7 @@ from rasterio.windows import Window
 from workers.algorithms.mosaic import compose_block, gains_and_coverage, output_box
 from workers.config import MosaicConfig
 from workers.raster_io import open_block_writer, translate_to_cog
+from workers.records import Coverage
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -19,31 +20,31 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     """Write ``mosaic.tif`` (COG, RGB + mask) and ``footprints.geojson``-ready ``coverage.json``."""
     geo = ws.load_georef()
     frames = ws.load_composed_frames()
-    homs = ws.load_homographies()
-    out_to_plane = np.array(geo["output_to_plane"])
+    homs = ws.load_alignment().homographies
     # output pixel -> frame pixel, for every frame
-    to_frame = {k: np.linalg.inv(H) @ out_to_plane for k, H in homs.items()}
-    boxes = {k: output_box(M, frames[k], geo["width"], geo["height"]) for k, M in to_frame.items()}
+    to_frame = {k: np.linalg.inv(H) @ geo.output_to_plane for k, H in homs.items()}
+    sizes = {k: (frames[k].width, frames[k].height) for k in to_frame}
+    boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
     progress(0.0, "gain compensation")
     image_of = partial(ws.load_compose_image, mmap=True)
-    gains, coverage = gains_and_coverage(image_of, frames, to_frame, geo, cfg.gain_compensation)
-    ws.save_coverage(coverage)
-    blocks = [(x, y) for y in range(0, geo["height"], cfg.block_px) for x in range(0, geo["width"], cfg.block_px)]
+    gains, outline, area = gains_and_coverage(image_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation)
+    ws.save_coverage(Coverage(outline, area))
+    blocks = [(x, y) for y in range(0, geo.height, cfg.block_px) for x in range(0, geo.width, cfg.block_px)]
     tmp = ws.mosaic_scratch_path()
-    transform = geo["transform"] if geo["georeferenced"] else None
-    with open_block_writer(tmp, geo["width"], geo["height"], geo["epsg"], transform) as write:
+    transform = geo.transform if geo.georeferenced else None
+    with open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform) as write:
         for n, (x, y) in enumerate(blocks):
             progress(0.1 + 0.75 * n / len(blocks), f"block {n + 1}/{len(blocks)}")
-            w, h = min(cfg.block_px, geo["width"] - x), min(cfg.block_px, geo["height"] - y)
-            rgb, mask = compose_block(image_of, frames, to_frame, boxes, gains, (x, y, w, h), cfg.feather_px)
+            w, h = min(cfg.block_px, geo.width - x), min(cfg.block_px, geo.height - y)
+            rgb, mask = compose_block(image_of, sizes, to_frame, boxes, gains, (x, y, w, h), cfg.feather_px)
             write(Window(x, y, w, h), rgb, mask)
     progress(0.85, "writing COG with overviews")
     translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression)
     tmp.unlink(missing_ok=True)
     progress(1.0, f"block {len(blocks)}/{len(blocks)}")
     return {
-        "width": geo["width"],
-        "height": geo["height"],
+        "width": geo.width,
+        "height": geo.height,
         "blocks": len(blocks),
-        "gains": {frames[k]["name"]: g for k, g in gains.items()},
+        "gains": {frames[k].name: g for k, g in gains.items()},
     }

@@ -10,6 +10,7 @@ from gpu_kernels.backend import resolve_device
 from workers.algorithms.mosaic import detect, detector_name
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map
+from workers.records import Frame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -18,13 +19,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     frames = ws.load_frames()
     device = resolve_device(cfg.device)
 
-    def one(frame: dict[str, Any]) -> int:
-        gray = cv2.cvtColor(ws.load_working_image(frame["index"]), cv2.COLOR_BGR2GRAY)
+    def one(frame: Frame) -> int:
+        gray = cv2.cvtColor(ws.load_working_image(frame.index), cv2.COLOR_BGR2GRAY)
         points, descriptors = detect(gray, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
-        ws.save_features(frame["index"], points, descriptors)
+        ws.save_features(frame.index, points, descriptors)
         return len(points)
 
     # One frame at a time: OpenCV's SIFT already uses every core (measured: 2 threads gave no gain on
     # 2 cores and doubled peak memory), and a GPU is one shared device.
-    counts = dict(zip([f["name"] for f in frames], ordered_map(one, frames, 1, progress, "frame"), strict=True))
+    counts = dict(zip([f.name for f in frames], ordered_map(one, frames, 1, progress, "frame"), strict=True))
     return {"device": device, "detector": detector_name(cfg.feature_type, device), "keypoints": counts}

@@ -10,6 +10,7 @@ from workers.algorithms.geometry import FLIP_Y, fit_similarity, lonlat_to_utm, s
 from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, apply_homography, frame_corners, map_grid, pixel_grid
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
+from workers.records import Frame, Georef
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 MIN_GPS_SPREAD_M = 3.0  # below this, consumer GPS noise would dominate the fitted scale and rotation
@@ -18,57 +19,57 @@ MIN_GPS_SPREAD_M = 3.0  # below this, consumer GPS noise would dominate the fitt
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``georef.json``: output pixel -> plane homography, CRS and pixel size."""
     progress(0.0, "fitting GPS")
-    frames = {f["index"]: f for f in ws.load_frames()}
-    homs = ws.load_homographies()
+    frames = {f.index: f for f in ws.load_frames()}
+    homs = ws.load_alignment().homographies
     corners = np.concatenate(
-        [apply_homography(H, frame_corners(frames[k]["width"], frames[k]["height"])) for k, H in homs.items()]
+        [apply_homography(H, frame_corners(frames[k].width, frames[k].height)) for k, H in homs.items()]
     )
     fit, reason = _fit_gps(frames, homs, cfg.min_gps_frames)
     if fit is not None:
         grid = map_grid(corners, fit["plane_to_map"])
-        result = {"georeferenced": True, "reason": "", **fit, **grid}
+        result = Georef(georeferenced=True, reason="", **{**fit, **grid})
     else:
         grid = pixel_grid(corners)
-        result = {
-            "georeferenced": False,
-            "reason": reason,
-            "epsg": None,
-            "plane_to_map": np.eye(3).tolist(),
-            "gsd_m": None,
-            **grid,
-        }
-    if result["width"] * result["height"] > MAX_OUTPUT_PIXELS:
+        result = Georef(georeferenced=False, reason=reason, epsg=None, plane_to_map=np.eye(3), gsd_m=None, **grid)
+    if result.width * result.height > MAX_OUTPUT_PIXELS:
         raise PipelineError(
-            f"the mosaic would be {result['width']}x{result['height']} px; the alignment "
+            f"the mosaic would be {result.width}x{result.height} px; the alignment "
             "is degenerate (frames do not lie in one plane)"
         )
     ws.save_georef(result)
     progress(1.0, "georeferenced" if fit else "local pixel grid")
-    return {k: result[k] for k in ("georeferenced", "reason", "epsg", "gsd_m", "width", "height")}
+    return {
+        "georeferenced": result.georeferenced,
+        "reason": result.reason,
+        "epsg": result.epsg,
+        "gsd_m": result.gsd_m,
+        "width": result.width,
+        "height": result.height,
+    }
 
 
 def _fit_gps(
-    frames: dict[int, dict[str, Any]], homs: dict[int, np.ndarray], min_frames: int
+    frames: dict[int, Frame], homs: dict[int, np.ndarray], min_frames: int
 ) -> tuple[dict[str, Any] | None, str]:
-    with_gps = [k for k in homs if frames[k].get("gps")]
+    with_gps = [k for k in homs if frames[k].gps]
     if len(with_gps) < min_frames:
         return None, f"{len(with_gps)} aligned frame(s) have GPS; georeferencing needs {min_frames}"
-    lonlat = np.array([[frames[k]["gps"]["lon"], frames[k]["gps"]["lat"]] for k in with_gps])
+    lonlat = np.array([[gps["lon"], gps["lat"]] for k in with_gps if (gps := frames[k].gps)])
     epsg = utm_epsg(float(lonlat[:, 1].mean()), float(lonlat[:, 0].mean()))
     utm = lonlat_to_utm(lonlat, epsg)
     spread = float(np.linalg.norm(utm - utm.mean(axis=0), axis=1).max())
     if spread < MIN_GPS_SPREAD_M:
         return None, f"the GPS positions lie within {spread:.1f} m of each other; too close to fit a scale"
-    centre = {k: np.array([(frames[k]["width"] - 1) / 2, (frames[k]["height"] - 1) / 2]) for k in with_gps}
+    centre = {k: np.array([(frames[k].width - 1) / 2, (frames[k].height - 1) / 2]) for k in with_gps}
     centres = np.array([apply_homography(homs[k], centre[k])[0] for k in with_gps])
     S = fit_similarity(apply_homography(FLIP_Y, centres), utm)
     M = S @ FLIP_Y
     residuals = np.linalg.norm(apply_homography(M, centres) - utm, axis=1)
     return {
         "epsg": epsg,
-        "plane_to_map": M.tolist(),
+        "plane_to_map": M,
         "gsd_m": similarity_scale(M),
         "gps_frames": len(with_gps),
         "gps_residual_rms_m": float(np.sqrt(np.mean(residuals**2))),
-        "gps_residuals_m": {frames[k]["name"]: float(r) for k, r in zip(with_gps, residuals, strict=True)},
+        "gps_residuals_m": {frames[k].name: float(r) for k, r in zip(with_gps, residuals, strict=True)},
     }, ""

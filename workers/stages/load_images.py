@@ -9,40 +9,38 @@ import numpy as np
 
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
+from workers.records import Frame, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
+
+EXIF_FIELDS = ("gps", "focal_length_mm", "focal_length_35mm", "yaw", "pitch", "roll", "relative_altitude")
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Read ``inputs.json``; write ``work/frame_NNNN.npy`` and ``frames.json``."""
     inputs = ws.load_inputs()
-    frames: list[dict[str, Any]] = []
-    rejected: list[dict[str, Any]] = []
+    frames: list[Frame] = []
+    rejected: list[RejectedFrame] = []
     for k, item in enumerate(inputs):
         progress(k / len(inputs), f"frame {k + 1}/{len(inputs)}")
         image = cv2.imread(item["path"], cv2.IMREAD_COLOR)
         if image is None:
-            rejected.append({"index": k, "name": item["name"], "reason": "could not be decoded"})
+            rejected.append(RejectedFrame(k, item["name"], "could not be decoded"))
             continue
         working, scale = _downscale(image, cfg.working_max_px)
         ws.save_working_image(k, working)
+        metadata = {name: item.get(name) for name in EXIF_FIELDS}
         frames.append(
-            {
-                "index": k,
-                "name": item["name"],
-                "path": item["path"],
-                "orig_width": image.shape[1],
-                "orig_height": image.shape[0],
-                "width": working.shape[1],
-                "height": working.shape[0],
-                "scale": scale,
-                "gps": item.get("gps"),
-                "focal_length_mm": item.get("focal_length_mm"),
-                "focal_length_35mm": item.get("focal_length_35mm"),
-                "yaw": item.get("yaw"),
-                "pitch": item.get("pitch"),
-                "roll": item.get("roll"),
-                "relative_altitude": item.get("relative_altitude"),
-            }
+            Frame(
+                k,
+                item["name"],
+                item["path"],
+                image.shape[1],
+                image.shape[0],
+                working.shape[1],
+                working.shape[0],
+                scale,
+                **metadata,
+            )
         )
     if len(frames) < 2:
         raise PipelineError(f"only {len(frames)} of {len(inputs)} frames could be decoded; a mosaic needs 2")

@@ -6,7 +6,7 @@ ortho mode (the scene may have relief; the bundle adjustment triangulates it).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -21,16 +21,17 @@ from workers.algorithms.mosaic import (
 )
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
+from workers.records import Frame, PairRecord
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``matches/pair_I_J.npz`` (inlier tie points) and ``pairs.json`` (every pair tried)."""
     frames = ws.load_frames()
-    with_gps = all(f.get("gps") for f in frames)
-    positions = local_metres(np.array([[f["gps"]["lat"], f["gps"]["lon"]] for f in frames])) if with_gps else None
+    with_gps = all(f.gps for f in frames)
+    positions = local_metres(np.array([[f.gps["lat"], f.gps["lon"]] for f in frames if f.gps])) if with_gps else None
     pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
-    features = {f["index"]: ws.load_features(f["index"]) for f in frames}
+    features = {f.index: ws.load_features(f.index) for f in frames}
     device = resolve_device(cfg.device)
     threads = 1 if device == "cuda" else thread_count(cfg.threads)
     results = ordered_map(
@@ -41,7 +42,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "pair",
     )
     ws.save_pairs(results)
-    accepted = [r for r in results if r["accepted"]]
+    accepted = [r for r in results if r.accepted]
     exhaustive = not with_gps and len(frames) <= cfg.exhaustive_max_frames
     return {
         "pairs_tried": len(results),
@@ -54,34 +55,27 @@ def _match_pair(
     ws: JobWorkspace,
     cfg: MosaicConfig,
     device: Device,
-    fa: dict[str, Any],
-    fb: dict[str, Any],
+    fa: Frame,
+    fb: Frame,
     features: dict[int, tuple[np.ndarray, np.ndarray]],
-) -> dict[str, Any]:
-    i, j = fa["index"], fb["index"]
+) -> PairRecord:
+    i, j = fa.index, fb.index
     (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
     matches = match(desc_i, desc_j, cfg.feature_type, device, cfg.ratio_test, cfg.ncc_threshold)
     estimate = estimate_fundamental if cfg.mode == "ortho" else estimate_homography
     H, inliers = estimate(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
     n_in = int(inliers.sum())
     accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
-    record: dict[str, Any] = {
-        "i": i,
-        "j": j,
-        "matches": len(matches),
-        "inliers": n_in,
-        "accepted": bool(accepted),
-        "H" if cfg.mode == "planar" else "F": H.tolist() if H is not None else None,
-    }
-    if accepted:
-        good = matches[inliers]
-        keep = spread_subset(pts_i[good[:, 0]], (fa["width"], fa["height"]), cfg.max_tie_points_per_pair)
-        ws.save_matches(
-            (i, j),
-            pts_i[good[keep, 0]].astype(np.float64),
-            pts_j[good[keep, 1]].astype(np.float64),
-            good[keep, 0],
-            good[keep, 1],
-        )
-        record["tie_points"] = len(keep)
-    return record
+    kind: Literal["H", "F"] = "H" if cfg.mode == "planar" else "F"
+    if not accepted:
+        return PairRecord(i, j, len(matches), n_in, False, kind, H)
+    good = matches[inliers]
+    keep = spread_subset(pts_i[good[:, 0]], (fa.width, fa.height), cfg.max_tie_points_per_pair)
+    ws.save_matches(
+        (i, j),
+        pts_i[good[keep, 0]].astype(np.float64),
+        pts_j[good[keep, 1]].astype(np.float64),
+        good[keep, 0],
+        good[keep, 1],
+    )
+    return PairRecord(i, j, len(matches), n_in, True, kind, H, tie_points=len(keep))

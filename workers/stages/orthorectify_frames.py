@@ -17,6 +17,7 @@ from workers.algorithms.geometry import Camera
 from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, map_grid, pixel_grid
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
+from workers.records import Alignment, Georef, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 MIN_KEPT_ROWS = 0.1  # a frame cut to less than this share of its rows (or columns) is left out
@@ -24,7 +25,7 @@ MIN_KEPT_ROWS = 0.1  # a frame cut to less than this share of its rows (or colum
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``ortho/frame_NNNN.npy`` (undistorted), ``alignment.json`` and ``georef.json``."""
-    frames = {f["index"]: f for f in ws.load_frames()}
+    frames = {f.index: f for f in ws.load_frames()}
     adjusted = ws.load_cameras()
     camera = Camera.from_json(adjusted["camera"])
     ideal = camera.replace(k1=0.0, k2=0.0, k3=0.0, t1=0.0, t2=0.0)
@@ -35,44 +36,39 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         raise PipelineError(f"the cameras are not above the ground plane at {z0:.1f} m; set ground_elevation_m")
     plane_from_ground = np.diag([1.0 / gsd, -1.0 / gsd, 1.0])  # plane px: x east, y south
     maps = camera.undistort_maps(ideal)
-    homographies, sizes, rejected = {}, {}, list(adjusted["not_registered"])
+    homographies: dict[int, np.ndarray] = {}
+    sizes: dict[int, tuple[int, int]] = {}
+    rejected = [RejectedFrame.from_json(r) for r in adjusted["not_registered"]]
     for n, (k, (R, C)) in enumerate(sorted(poses.items())):
         progress(n / len(poses), f"frame {n + 1}/{len(poses)}")
         image_from_ground = ideal.matrix() @ R @ np.array([[1, 0, -C[0]], [0, 1, -C[1]], [0, 0, z0 - C[2]]])
         crop = ground_crop(R, C, z0, ideal, cfg.max_ground_range)
         if crop is None:
-            rejected.append(
-                {
-                    "index": k,
-                    "name": frames[k]["name"],
-                    "reason": f"looks at the horizon: too little ground within {cfg.max_ground_range:g} flying heights",
-                }
-            )
+            reason = f"looks at the horizon: too little ground within {cfg.max_ground_range:g} flying heights"
+            rejected.append(RejectedFrame(k, frames[k].name, reason))
             continue
         x0, y0, x1, y1 = crop
         undistorted = cv2.remap(ws.load_working_image(k), maps[0], maps[1], cv2.INTER_LINEAR)[y0:y1, x0:x1]
         ws.save_ortho_image(k, undistorted)
         shift = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])  # cropped px -> full px
         homographies[k] = plane_from_ground @ np.linalg.inv(image_from_ground) @ shift
-        sizes[k] = [x1 - x0, y1 - y0]
+        sizes[k] = (x1 - x0, y1 - y0)
     if not homographies:
         raise PipelineError("no frame sees enough ground to orthorectify")
-    geo = _grid(adjusted["world"], homographies, sizes, gsd)
+    report = adjusted["report"]
     ws.save_alignment(
-        {
-            "mode": "ortho",
-            "reference": min(homographies),
-            "homographies": {k: H.tolist() for k, H in homographies.items()},
-            "frame_sizes": sizes,
-            "ground_z": z0,
-            "tie_point_rms_px": adjusted["report"]["rms_px"],
-            "tie_points": adjusted["report"]["observations"],
-            "rejected": rejected,
-            "pairs": [],
-            "dropped_pairs": [],
-        }
+        Alignment(
+            mode="ortho",
+            reference=min(homographies),
+            homographies=homographies,
+            frame_sizes=sizes,
+            ground_z=z0,
+            tie_point_rms_px=report["rms_px"],
+            tie_points=report["observations"],
+            rejected=rejected,
+        )
     )
-    ws.save_georef({**geo, "gps_residual_rms_m": adjusted["report"]["gps_residual_rms_m"]})
+    ws.save_georef(_grid(adjusted["world"], homographies, sizes, gsd, report["gps_residual_rms_m"]))
     progress(1.0, f"{len(homographies)} frames at {gsd * 100:.1f} cm/px")
     return {"frames": len(homographies), "rejected": len(rejected), "gsd_m": gsd, "ground_z": z0}
 
@@ -126,8 +122,12 @@ def _area(crop: tuple[int, int, int, int]) -> int:
 
 
 def _grid(
-    world: dict[str, Any], homographies: dict[int, np.ndarray], sizes: dict[int, list[int]], gsd: float
-) -> dict[str, Any]:
+    world: dict[str, Any],
+    homographies: dict[int, np.ndarray],
+    sizes: dict[int, tuple[int, int]],
+    gsd: float,
+    gps_residual_rms_m: float | None,
+) -> Georef:
     corners = []
     for k, H in homographies.items():
         w, h = sizes[k]
@@ -135,24 +135,27 @@ def _grid(
         corners.append(pts[:, :2] / pts[:, 2:])
     plane = np.concatenate(corners)
     if world.get("epsg"):
-        plane_to_map = [[gsd, 0.0, world["easting0"]], [0.0, -gsd, world["northing0"]], [0.0, 0.0, 1.0]]
-        grid = {
-            "georeferenced": True,
-            "reason": "",
-            "epsg": world["epsg"],
-            "plane_to_map": plane_to_map,
-            "gsd_m": gsd,
+        plane_to_map = np.array([[gsd, 0.0, world["easting0"]], [0.0, -gsd, world["northing0"]], [0.0, 0.0, 1.0]])
+        grid = Georef(
+            georeferenced=True,
+            reason="",
+            epsg=world["epsg"],
+            plane_to_map=plane_to_map,
+            gsd_m=gsd,
+            gps_residual_rms_m=gps_residual_rms_m,
             **map_grid(plane, plane_to_map),
-        }
+        )
     else:
-        grid = {
-            "georeferenced": False,
-            "reason": world.get("note", "no GPS or GCPs: arbitrary datum"),
-            "epsg": None,
-            "plane_to_map": np.eye(3).tolist(),
-            "gsd_m": None,
+        reason = world.get("note", "no GPS or GCPs: arbitrary datum")
+        grid = Georef(
+            georeferenced=False,
+            reason=reason,
+            epsg=None,
+            plane_to_map=np.eye(3),
+            gsd_m=None,
+            gps_residual_rms_m=gps_residual_rms_m,
             **pixel_grid(plane),
-        }
-    if grid["width"] * grid["height"] > MAX_OUTPUT_PIXELS:
-        raise PipelineError(f"the orthomosaic would be {grid['width']}x{grid['height']} px; lower max_ground_range")
+        )
+    if grid.width * grid.height > MAX_OUTPUT_PIXELS:
+        raise PipelineError(f"the orthomosaic would be {grid.width}x{grid.height} px; lower max_ground_range")
     return grid

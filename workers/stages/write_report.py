@@ -10,6 +10,7 @@ from workers.algorithms.geometry import utm_to_lonlat
 from workers.algorithms.mosaic import apply_homography, frame_corners
 from workers.config import MosaicConfig
 from workers.pipeline import pipeline_key, stage_names
+from workers.records import Alignment, Frame, Georef, PairRecord
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -19,95 +20,93 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     frames = ws.load_composed_frames()
     align, geo = ws.load_alignment(), ws.load_georef()
     pairs = ws.load_pairs()
-    homs = ws.load_homographies()
-    to_out = np.linalg.inv(np.array(geo["output_to_plane"]))
+    homs = align.homographies
+    to_out = np.linalg.inv(geo.output_to_plane)
     footprints = {
-        k: _to_crs(geo, apply_homography(to_out @ H, frame_corners(frames[k]["width"], frames[k]["height"])))
+        k: _to_crs(geo, apply_homography(to_out @ H, frame_corners(frames[k].width, frames[k].height)))
         for k, H in homs.items()
     }
     coverage = ws.load_coverage()
-    outline = [_to_crs(geo, np.array(ring)) for ring in coverage["outline_px"]]
-    ref = frames[align["reference"]]
-    rms = align["tie_point_rms_px"]
-    report = {
+    outline = [_to_crs(geo, ring) for ring in coverage.outline_px]
+    ref = frames[align.reference]
+    rms = align.tie_point_rms_px
+    report: dict[str, Any] = {
         "kind": "mosaic",
         "mode": cfg.mode,
         "config": cfg.model_dump(),
-        "frames_used": [_frame_entry(frames[k], footprints[k], align) for k in sorted(homs)],
-        "frames_rejected": ws.load_rejected_frames() + align["rejected"],
-        "reference_frame": ref["name"],
+        "frames_used": [_frame_entry(frames[k], footprints[k]) for k in sorted(homs)],
+        "frames_rejected": [r.to_json() for r in ws.load_rejected_frames() + align.rejected],
+        "reference_frame": ref.name,
         "pairs": _pair_entries(pairs, frames, align),
         "tie_point_rms_px": rms,
-        "tie_point_rms_px_original": rms / ref["scale"] if rms is not None else None,
-        "tie_points": align["tie_points"],
-        "georeferenced": geo["georeferenced"],
-        "georeference_note": geo["reason"],
-        "crs": f"EPSG:{geo['epsg']}" if geo["georeferenced"] else None,
-        "gsd_m": geo["gsd_m"],  # the mosaic's pixel size
-        "gsd_original_m": geo["gsd_m"] * ref["scale"] if geo["gsd_m"] else None,  # the photos' own
-        "gps_residual_rms_m": geo.get("gps_residual_rms_m"),
+        "tie_point_rms_px_original": rms / ref.scale if rms is not None else None,
+        "tie_points": align.tie_points,
+        "georeferenced": geo.georeferenced,
+        "georeference_note": geo.reason,
+        "crs": f"EPSG:{geo.epsg}" if geo.georeferenced else None,
+        "gsd_m": geo.gsd_m,  # the mosaic's pixel size
+        "gsd_original_m": geo.gsd_m * ref.scale if geo.gsd_m else None,  # the photos' own
+        "gps_residual_rms_m": geo.gps_residual_rms_m,
         "mosaic": {
-            "width": geo["width"],
-            "height": geo["height"],
-            "transform": geo["transform"],
+            "width": geo.width,
+            "height": geo.height,
+            "transform": geo.transform,
             "footprint": _polygon(outline, geo),
-            "coverage_fraction": coverage["area_fraction"],
+            "coverage_fraction": coverage.area_fraction,
         },
         "stage_seconds": _stage_seconds(ws, pipeline_key("mosaic", {"mode": cfg.mode})),
     }
     if cfg.mode == "ortho":
         report["triangulation"] = ws.load_cameras()["report"]
     ws.save_report(report)
-    if geo["georeferenced"]:
+    if geo.georeferenced:
         ws.save_footprints(_footprint_collection(frames, footprints))
     progress(1.0, "report")
     return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
 
 
-def _to_crs(geo: dict[str, Any], out_px: np.ndarray) -> np.ndarray:
+def _to_crs(geo: Georef, out_px: np.ndarray) -> np.ndarray:
     """Output pixel coordinates -> lon/lat (georeferenced) or output pixels (not)."""
-    if not geo["georeferenced"]:
+    if not geo.georeferenced or geo.epsg is None:
         return out_px
-    a = np.array(geo["transform"]).reshape(2, 3)
+    a = np.array(geo.transform).reshape(2, 3)
     xy = out_px @ a[:, :2].T + a[:, 2]
-    return utm_to_lonlat(xy, geo["epsg"])
+    return utm_to_lonlat(xy, geo.epsg)
 
 
-def _polygon(rings: list[np.ndarray], geo: dict[str, Any]) -> dict[str, Any]:
+def _polygon(rings: list[np.ndarray], geo: Georef) -> dict[str, Any]:
     closed = [np.vstack([r, r[:1]]).round(8).tolist() for r in rings]
     return {
         "type": "MultiPolygon",
         "coordinates": [[ring] for ring in closed],
-        "units": "lon/lat degrees" if geo["georeferenced"] else "mosaic pixels",
+        "units": "lon/lat degrees" if geo.georeferenced else "mosaic pixels",
     }
 
 
-def _frame_entry(frame: dict[str, Any], footprint: np.ndarray, align: dict[str, Any]) -> dict[str, Any]:
+def _frame_entry(frame: Frame, footprint: np.ndarray) -> dict[str, Any]:
     return {
-        "index": frame["index"],
-        "name": frame["name"],
-        "gps": frame.get("gps"),
-        "size": [frame["orig_width"], frame["orig_height"]],
-        "working_scale": frame["scale"],
+        "index": frame.index,
+        "name": frame.name,
+        "gps": frame.gps,
+        "size": [frame.orig_width, frame.orig_height],
+        "working_scale": frame.scale,
         "footprint": np.vstack([footprint, footprint[:1]]).round(8).tolist(),
     }
 
 
-def _pair_entries(
-    pairs: list[dict[str, Any]], frames: dict[int, dict[str, Any]], align: dict[str, Any]
-) -> list[dict[str, Any]]:
-    rms = {(p["i"], p["j"]): p["rms_px"] for p in align["pairs"]}
-    dropped = {(p["i"], p["j"]): p["reason"] for p in align["dropped_pairs"]}
+def _pair_entries(pairs: list[PairRecord], frames: dict[int, Frame], align: Alignment) -> list[dict[str, Any]]:
+    rms = {(p.i, p.j): p.rms_px for p in align.pair_residuals}
+    dropped = {(p.i, p.j): p.reason for p in align.dropped_pairs}
     entries = []
     for p in pairs:
-        pair = (p["i"], p["j"])
-        reason = dropped.get(pair) or ("" if p["accepted"] else "too few inliers of the pair's model")
+        pair = p.pair
+        reason = dropped.get(pair) or ("" if p.accepted else "too few inliers of the pair's model")
         entries.append(
             {
-                "frames": [frames[p["i"]]["name"], frames[p["j"]]["name"]],
-                "matches": p["matches"],
-                "inliers": p["inliers"],
-                "used": p["accepted"] and pair not in dropped,
+                "frames": [frames[p.i].name, frames[p.j].name],
+                "matches": p.matches,
+                "inliers": p.inliers,
+                "used": p.accepted and pair not in dropped,
                 "reason_unused": reason,
                 "tie_point_rms_px": rms.get(pair),
             }
@@ -124,11 +123,11 @@ def _stage_seconds(ws: JobWorkspace, pipeline: str) -> dict[str, float]:
     return out
 
 
-def _footprint_collection(frames: dict[int, dict[str, Any]], footprints: dict[int, np.ndarray]) -> dict[str, Any]:
+def _footprint_collection(frames: dict[int, Frame], footprints: dict[int, np.ndarray]) -> dict[str, Any]:
     features = [
         {
             "type": "Feature",
-            "properties": {"index": k, "name": frames[k]["name"]},
+            "properties": {"index": k, "name": frames[k].name},
             "geometry": {"type": "Polygon", "coordinates": [np.vstack([c, c[:1]]).round(8).tolist()]},
         }
         for k, c in sorted(footprints.items())

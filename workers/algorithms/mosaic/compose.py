@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import cv2
 import numpy as np
@@ -18,9 +17,9 @@ from workers.algorithms.mosaic.blending import feather_weights, gain_compensatio
 OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains and the footprint
 
 
-def output_box(to_frame: np.ndarray, frame: dict[str, Any], width: int, height: int) -> tuple[int, int, int, int]:
-    """Output pixel bbox (x0, y0, x1, y1) of a frame, clipped to the grid."""
-    c = apply_homography(np.linalg.inv(to_frame), frame_corners(frame["width"], frame["height"]))
+def output_box(to_frame: np.ndarray, size: tuple[int, int], width: int, height: int) -> tuple[int, int, int, int]:
+    """Output pixel bbox (x0, y0, x1, y1) of a frame of ``size`` (width, height) px, clipped to the grid."""
+    c = apply_homography(np.linalg.inv(to_frame), frame_corners(*size))
     x0, y0 = np.floor(c.min(axis=0)).astype(int) - 1
     x1, y1 = np.ceil(c.max(axis=0)).astype(int) + 1
     return max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
@@ -28,7 +27,7 @@ def output_box(to_frame: np.ndarray, frame: dict[str, Any], width: int, height: 
 
 def compose_block(
     image_of: Callable[[int], np.ndarray],
-    frames: dict[int, dict[str, Any]],
+    sizes: dict[int, tuple[int, int]],
     to_frame: dict[int, np.ndarray],
     boxes: dict[int, tuple[int, int, int, int]],
     gains: dict[int, np.ndarray],
@@ -37,7 +36,8 @@ def compose_block(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One output window ``(x, y, w, h)``: every frame that reaches it warped, gain-corrected and feathered.
 
-    ``image_of(k)`` gives frame ``k``'s (H, W, 3) uint8 BGR pixels (memory-mapped: only the rows and columns
+    ``image_of(k)`` gives frame ``k``'s (H, W, 3) uint8 BGR pixels, ``sizes[k]`` its (W, H); ``to_frame[k]`` maps
+    output px to its px (memory-mapped: only the rows and columns
     the window needs are read). Returns (h, w, 3) uint8 RGB and (h, w) bool coverage.
     """
     x, y, w, h = window
@@ -46,9 +46,8 @@ def compose_block(
     for k, (bx0, by0, bx1, by1) in boxes.items():
         if bx1 <= x or by1 <= y or bx0 >= x + w or by0 >= y + h:
             continue
-        f = frames[k]
         map_x, map_y = warp_maps(to_frame[k], x, y, w, h)
-        weight = feather_weights(map_x, map_y, f["width"], f["height"], feather_px)
+        weight = feather_weights(map_x, map_y, *sizes[k], feather_px)
         if not weight.any():
             continue
         pixels = _sample(image_of(k), map_x, map_y, weight > 0)
@@ -72,21 +71,22 @@ def _sample(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, valid: np.n
 
 def gains_and_coverage(
     image_of: Callable[[int], np.ndarray],
-    frames: dict[int, dict[str, Any]],
+    sizes: dict[int, tuple[int, int]],
     to_frame: dict[int, np.ndarray],
-    geo: dict[str, Any],
+    width: int,
+    height: int,
     enabled: bool,
-) -> tuple[dict[int, np.ndarray], dict[str, Any]]:
-    """Gains from a low-resolution render of every frame, and the mosaic's coverage outline."""
-    r = min(1.0, OVERVIEW_PX / max(geo["width"], geo["height"]))
-    lw, lh = max(1, round(geo["width"] * r)), max(1, round(geo["height"] * r))
+) -> tuple[dict[int, np.ndarray], list[np.ndarray], float]:
+    """Gains from a low-resolution render of every frame on the ``width`` x ``height`` output grid, and the
+    mosaic's coverage: outline rings (N, 2) in output px and the share of the grid covered."""
+    r = min(1.0, OVERVIEW_PX / max(width, height))
+    lw, lh = max(1, round(width * r)), max(1, round(height * r))
     low_to_out = np.diag([1 / r, 1 / r, 1.0])
     keys = sorted(to_frame)
     images, masks = [], []
     for k in keys:
-        f = frames[k]
         map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
-        inside = feather_weights(map_x, map_y, f["width"], f["height"], 2.0 / r) >= 1.0
+        inside = feather_weights(map_x, map_y, *sizes[k], 2.0 / r) >= 1.0
         image = image_of(k)
         images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
         masks.append(inside)
@@ -97,7 +97,4 @@ def gains_and_coverage(
     union = np.any(masks, axis=0).astype(np.uint8) if masks else np.zeros((lh, lw), np.uint8)
     contours, _ = cv2.findContours(union, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     outline = [(c.reshape(-1, 2).astype(np.float64) + 0.5) / r for c in contours if len(c) >= 3]
-    return (
-        {k: gains[n] for n, k in enumerate(keys)},
-        {"outline_px": [o.tolist() for o in outline], "area_fraction": float(union.mean())},
-    )
+    return {k: gains[n] for n, k in enumerate(keys)}, outline, float(union.mean())

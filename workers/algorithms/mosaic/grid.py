@@ -13,8 +13,12 @@ from workers.algorithms.mosaic.alignment import apply_homography
 MAX_OUTPUT_PIXELS = 4_000_000_000  # a larger grid means a broken alignment, not a real flight
 
 
-def map_grid(plane_corners: np.ndarray, plane_to_map: list[list[float]]) -> dict[str, Any]:
-    """A north-up grid in map units covering every frame, at the plane's own resolution."""
+def map_grid(plane_corners: np.ndarray, plane_to_map: np.ndarray) -> dict[str, Any]:
+    """A north-up grid in map units covering every frame, at the plane's own resolution.
+
+    ``plane_corners`` (N, 2) plane px; ``plane_to_map`` (3, 3). Returns ``width``, ``height`` (px), ``transform``
+    (GDAL affine, 6 floats) and ``output_to_plane`` (3, 3).
+    """
     M = np.array(plane_to_map)
     gsd = similarity_scale(M)
     xy = apply_homography(M, plane_corners)
@@ -26,7 +30,7 @@ def map_grid(plane_corners: np.ndarray, plane_to_map: list[list[float]]) -> dict
         "width": width,
         "height": height,
         "transform": affine[:2].ravel().tolist(),
-        "output_to_plane": (np.linalg.inv(M) @ affine).tolist(),
+        "output_to_plane": np.linalg.inv(M) @ affine,
     }
 
 
@@ -39,5 +43,5 @@ def pixel_grid(plane_corners: np.ndarray) -> dict[str, Any]:
         "width": int(x1 - x0),
         "height": int(y1 - y0),
         "transform": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
-        "output_to_plane": shift.tolist(),
+        "output_to_plane": shift,
     }
