@@ -66,6 +66,9 @@ from .gcp import (
 from .gcp import (
     scale_observations as scale_observations,
 )
+from .ortho import (
+    ground_crop as ground_crop,
+)
 from .reconstruction import (
     Reconstruction as Reconstruction,
 )
