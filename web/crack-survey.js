@@ -218,9 +218,12 @@ function crackLayer(map, mmPerPx, onClick) {
     for (const crack of cracks) {
       const paths = list(crack.paths_mm).map((path) => path.filter(isPoint).map(toLatLng)).filter((p) => p.length > 1);
       if (!paths.length) continue;
-      const line = L.polyline(paths, { color: STATUS_COLOURS[crack.status] || "#888888", weight: 3, opacity: 0.95,
-        className: `crack crack-${crack.status}` });
-      line.bindTooltip(`Crack ${crack.id}: ${STATUS_TEXT[crack.status] || crack.status}, ${formatNumber(crack.length_mm, 1, "mm")}`, { sticky: true });
+      const known = Object.hasOwn(STATUS_COLOURS, crack.status);
+      const line = L.polyline(paths, { color: known ? STATUS_COLOURS[crack.status] : "#888888", weight: 3, opacity: 0.95,
+        className: known ? `crack crack-${crack.status}` : "crack" });
+      // A node, not a string: Leaflet sets a string tooltip as HTML.
+      line.bindTooltip(h("span", { class: "crack-tooltip" },
+        `Crack ${crack.id}: ${statusText(crack.status)}, ${formatNumber(crack.length_mm, 1, "mm")}`), { sticky: true });
       line.on("click", () => onClick(crack.id));
       group.addLayer(line);
       lines.set(crack.id, line);
@@ -261,7 +264,7 @@ function crackTable(step, onSelect) {
         attrs: { "data-testid": "crack-row", "data-crack": crack.id, "data-status": crack.status, class: "clickable" },
         cells: [
           h("button", { type: "button", class: "link-button", "aria-label": `Show crack ${crack.id} on the map` }, `#${crack.id}`),
-          h("span", { class: "nowrap" }, swatch(crack.status), ` ${STATUS_TEXT[crack.status] || crack.status}`),
+          h("span", { class: "nowrap" }, swatch(crack.status), ` ${statusText(crack.status)}`),
           formatNumber(crack.length_mm, 1), formatNumber(crack.mean_width_mm, 2), formatNumber(crack.max_width_mm, 2),
           degrees(crack.orientation_deg), crack.status === "grown" ? signed(crack.growth_mm) : "–",
         ],
@@ -345,8 +348,15 @@ function degrees(value) {
   return text === "–" ? text : `${text}°`;
 }
 
+/** A crack status as the page words it (one it does not know: as the report gives it). */
+function statusText(status) {
+  return Object.hasOwn(STATUS_TEXT, status) ? STATUS_TEXT[status] : String(status);
+}
+
 function swatch(status) {
-  return h("span", { class: "swatch", style: `background:${STATUS_COLOURS[status] || "#888888"}`, "aria-hidden": "true" });
+  // Only the page's own colours go into the style attribute, never the report's text.
+  const colour = Object.hasOwn(STATUS_COLOURS, status) ? STATUS_COLOURS[status] : "#888888";
+  return h("span", { class: "swatch", style: `background:${colour}`, "aria-hidden": "true" });
 }
 
 function countBy(cracks) {

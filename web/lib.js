@@ -1,7 +1,10 @@
 /* Shared helpers of the viewer: DOM building, formatting, progress bars and the JSON API client.
  *
  * The DOM is built with createElement and textContent, never innerHTML, so names and file names
- * typed by users cannot inject markup.
+ * typed by users cannot inject markup (web/eslint.config.js forbids innerHTML and its kin). Leaflet
+ * sets a string tooltip, popup or divIcon as HTML: give it a node built with `h()` instead. A URL
+ * attribute (href, src) is only set to an http(s) or blob: URL (`safeUrl`), and a link to a job's
+ * output only to one of this service's own /api/ paths (`apiUrl`).
  */
 
 import { JobStatus } from "./kinds.js";
@@ -11,7 +14,15 @@ export const TERMINAL = new Set([JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatu
 
 // -- DOM and formatting helpers ------------------------------------------------------------------
 
-/** Create an element: attributes (on* = listeners, text = textContent) and children. */
+// Attributes the browser follows as URLs: a `javascript:` URL there runs script when the link is followed.
+const URL_ATTRIBUTES = new Set(["href", "src", "action", "formaction"]);
+const URL_SCHEMES = new Set(["http:", "https:", "blob:"]);
+
+/**
+ * Create an element: attributes (on* = listeners, text = textContent) and children. Strings, numbers and
+ * anything else that is not a Node become text nodes, never markup; a URL attribute whose URL is not http(s)
+ * or blob: (`safeUrl`) is left out.
+ */
 export function h(tag, attrs, ...children) {
   const node = document.createElement(tag);
   for (const [key, value] of Object.entries(attrs || {})) {
@@ -19,13 +30,39 @@ export function h(tag, attrs, ...children) {
     if (key === "class") node.className = value;
     else if (key === "text") node.textContent = value;
     else if (key.startsWith("on")) node.addEventListener(key.slice(2), value);
-    else node.setAttribute(key, value === true ? "" : String(value));
+    else if (URL_ATTRIBUTES.has(key.toLowerCase())) {
+      const url = safeUrl(value);
+      if (url !== null) node.setAttribute(key, url);
+    } else node.setAttribute(key, value === true ? "" : String(value));
   }
   for (const child of children.flat(Infinity)) {
     if (child === null || child === undefined || child === false) continue;
     node.append(child instanceof Node ? child : String(child));
   }
   return node;
+}
+
+/** `value` if it is an http(s) or blob: URL, or a path or `#/...` route (which resolve to one); else null. */
+export function safeUrl(value) {
+  const text = String(value);
+  try {
+    // Parsed as the browser would follow it: "java\tscript:" and " javascript:" are javascript: URLs too.
+    return URL_SCHEMES.has(new URL(text, document.baseURI).protocol) ? text : null;
+  } catch {
+    return null;
+  }
+}
+
+/** `url` (from an API answer, e.g. an output's `url`) if it names a path of this service's API, else null. */
+export function apiUrl(url) {
+  if (typeof url !== "string" || !url) return null;
+  try {
+    const parsed = new URL(url, document.baseURI);
+    const own = parsed.origin === window.location.origin && parsed.pathname.startsWith("/api/");
+    return own ? parsed.href : null;
+  } catch {
+    return null;
+  }
 }
 
 export function formatBytes(n) {
@@ -176,12 +213,16 @@ export function filename(name) {
 
 /**
  * "Downloads": a link per job output ({name, url, size_bytes}), named by `labelOf(name)`, its test id
- * `testidOf(name)`; an output without a url is shown "(not available)". Answers [heading, list].
+ * `testidOf(name)`; an output without a url of this service's API (`apiUrl`) is shown "(not available)".
+ * Answers [heading, list].
  */
-export function downloadList(outputs, labelOf = (name) => name, testidOf = (name) => `download-${name.replace(/\.[^.]+$/, "")}`) {
-  const link = (o) => h("a", { href: o.url, download: o.name, "data-testid": testidOf(o.name) },
+export function downloadList(outputs, labelOf = (name) => name, testidOf = (name) => `download-${String(name).replace(/\.[^.]+$/, "")}`) {
+  const link = (o, href) => h("a", { href, download: o.name, "data-testid": testidOf(o.name) },
     labelOf(o.name), h("span", { class: "muted small" }, ` ${o.name} · ${formatBytes(o.size_bytes)}`));
-  const item = (o) => h("li", {}, o.url ? link(o) : h("span", { class: "muted" }, `${labelOf(o.name)} (not available)`));
+  const item = (o) => {
+    const href = apiUrl(o.url);
+    return h("li", {}, href ? link(o, href) : h("span", { class: "muted" }, `${labelOf(o.name)} (not available)`));
+  };
   return [
     h("h3", {}, "Downloads"),
     outputs.length ? h("ul", { class: "plain downloads" }, outputs.map(item))

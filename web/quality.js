@@ -5,6 +5,7 @@
 
 import {
   api,
+  apiUrl,
   dataTable,
   factList,
   filename,
@@ -32,10 +33,11 @@ const DATUMS = {
 /** Fill `card` from the job's report.json, if it has one; `outputs` is the job's outputs list. */
 export async function showQuality(view, outputs, card) {
   const entry = (outputs || []).find((o) => o.name === "report.json");
-  if (!entry) return;
+  const url = entry && apiUrl(entry.url); // read from this service only
+  if (!url) return;
   card.hidden = false;
   card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the report…"));
-  const report = await api("GET", entry.url, { signal: view.signal });
+  const report = await api("GET", url, { signal: view.signal });
   if (view.signal.aborted) return;
   card.replaceChildren(heading(report && report.mode), ...qualityBody(report || {}).filter(Boolean));
 }

@@ -1,6 +1,6 @@
 /* A finished job's mosaic on a Leaflet map (global `L`, loaded before the modules), with its downloads. */
 
-import { api, downloadList, factList, getConfig, h, jobOutputs, onAbort } from "./lib.js";
+import { api, apiUrl, downloadList, factList, getConfig, h, jobOutputs, onAbort } from "./lib.js";
 
 // -- Result: map and downloads ------------------------------------------------------------------
 
@@ -29,8 +29,8 @@ export async function showResult(view, job, card, outputs) {
   onAbort(view.signal, () => map.remove());
 
   controls.append(opacityControl(mosaic));
-  const footprints = byName["footprints.geojson"];
-  controls.append(georeferenced && footprints ? footprintControl(view, map, footprints.url) : footprintUnavailable(georeferenced));
+  const footprints = apiUrl((byName["footprints.geojson"] || {}).url); // fetched from this service only
+  controls.append(georeferenced && footprints ? footprintControl(view, map, footprints) : footprintUnavailable(georeferenced));
   controls.append(mosaicDownloads(byName), mosaicFacts(tilejson, georeferenced));
 }
 
@@ -67,6 +67,8 @@ export function createMosaicMap(node, tilejson, basemapUrl, attribution = "Mosai
     map = L.map(node, { minZoom: Math.max(0, minzoom - 3), maxZoom: maxzoom + 2 });
     Object.assign(layerOptions, { minNativeZoom: minzoom, maxNativeZoom: maxzoom, maxZoom: maxzoom + 2 });
     if (basemapUrl) {
+      // Leaflet shows an attribution as HTML; a parsed URL's hostname cannot hold a "<" (a forbidden host
+      // code point), so this one cannot open a tag. The basemap URL is the operator's setting, not a user's.
       L.tileLayer(basemapUrl, { maxZoom: maxzoom + 2, attribution: `Basemap: ${hostOf(basemapUrl)}` }).addTo(map);
     }
     L.control.scale({ imperial: false }).addTo(map);
@@ -110,8 +112,10 @@ function footprintControl(view, map, url) {
       layer = L.geoJSON(geojson, {
         style: { color: "#f59e0b", weight: 1.5, opacity: 0.9, fillOpacity: 0.04 },
         onEachFeature: (feature, featureLayer) => {
+          // A node, not a string: Leaflet sets a string tooltip as HTML, and the name is the photo's file name.
           const props = feature.properties || {};
-          featureLayer.bindTooltip(`Frame ${props.index ?? "?"}${props.name ? `: ${props.name}` : ""}`, { sticky: true });
+          featureLayer.bindTooltip(h("span", { class: "footprint-tooltip" }, `Frame ${props.index ?? "?"}`,
+            props.name ? `: ${props.name}` : ""), { sticky: true });
         },
       });
       if (box.checked) layer.addTo(map);
