@@ -13,11 +13,11 @@ World frame: east, north, up metres (the local frame of a GPS job); camera pose 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from workers.algorithms.geometry import Camera
+from workers.algorithms.geometry import Camera, rotation_from_vector
 
 TRUE_CAMERA = Camera(width=1200, height=900, fx=1000.0, fy=1000.0, cx=603.0, cy=447.5, k1=-0.08, k2=0.02)
 
@@ -164,3 +164,75 @@ def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarra
     R = U @ d @ Vt
     s = float(np.trace(np.diag(S) @ d) / ((a**2).sum() / len(src)))
     return s, R, mu_d - s * R @ mu_s
+
+
+def make_strip_scene(
+    strips: int = 2,
+    per_strip: int = 6,
+    heading_deg: float = 40.0,
+    altitude_m: float = 60.0,
+    spacing_m: float = 14.0,
+    strip_gap_m: float = 30.0,
+    n_points: int = 3000,
+    noise_px: float = 0.5,
+    outlier_fraction: float = 0.1,
+    turn_last_deg: float = 0.0,
+    seed: int = 0,
+) -> SfmScene:
+    """Parallel strips of nadir frames flown back and forth (a survey grid): the image top faces the direction
+    of flight, so consecutive strips are turned by 180 degrees. Strip ``s`` runs along ``heading_deg`` (even
+    ``s``) or against it, ``strip_gap_m`` beside the previous one; frames ``spacing_m`` apart, with a few
+    degrees of attitude noise and a metre of height wobble. The last frame of each strip is turned by
+    ``turn_last_deg`` more (the drone turning at the strip's end)."""
+    rng = np.random.default_rng(seed)
+    h = np.radians(heading_deg)
+    along, across = np.array([np.sin(h), np.cos(h), 0.0]), np.array([np.cos(h), -np.sin(h), 0.0])
+    rotations, centres = [], []
+    for s in range(strips):
+        steps = range(per_strip) if s % 2 == 0 else reversed(range(per_strip))
+        for k in steps:
+            offset = (k - (per_strip - 1) / 2) * spacing_m * along + (s - (strips - 1) / 2) * strip_gap_m * across
+            centres.append(offset + [0.0, 0.0, altitude_m] + rng.normal(0, [0.3, 0.3, 1.0]))
+            tilt = rotation_from_vector(np.radians(rng.normal(0, 1.5, 3)))
+            turn = turn_last_deg if k == (per_strip - 1 if s % 2 == 0 else 0) else 0.0
+            rotations.append(tilt @ nadir(heading_deg + (0.0 if s % 2 == 0 else 180.0) + turn + rng.normal(0, 3.0)))
+    extent = np.abs(np.array(centres)[:, :2]).max() + altitude_m
+    xy = rng.uniform(-extent, extent, (n_points, 2))
+    points = np.column_stack([xy, ground_height(xy[:, 0], xy[:, 1])])
+    scene = _observe(np.array(rotations), np.array(centres), points, noise_px, outlier_fraction, rng)
+    return replace(scene, attitude=np.array([dji_attitude(R) for R in scene.rotations]))
+
+
+def dji_attitude(R: np.ndarray) -> tuple[float, float, float]:
+    """DJI gimbal (yaw, pitch, roll) degrees of any world -> camera rotation: the exact inverse of
+    ``rotation_from_attitude`` (camera to world = Rz(-yaw) Rx(pitch) Ry(roll) of a level camera looking north),
+    also for tilted frames (near nadir, yaw and roll share the turn about the vertical)."""
+    level_north = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    M = R.T @ level_north.T  # = Rz(a) Rx(pitch) Ry(roll), a = -yaw
+    pitch = np.arcsin(np.clip(M[2, 1], -1.0, 1.0))
+    roll = np.arctan2(-M[2, 0], M[2, 2])
+    a = np.arctan2(-M[0, 1], M[1, 1])
+    return float(np.degrees(-a)), float(np.degrees(pitch)), float(np.degrees(roll))
+
+
+def _observe(
+    rotations: np.ndarray,
+    centres: np.ndarray,
+    points: np.ndarray,
+    noise_px: float,
+    outlier_fraction: float,
+    rng: np.random.Generator,
+) -> SfmScene:
+    features, feature_point = [], []
+    for R, C in zip(rotations, centres, strict=True):
+        cam = (points - C) @ R.T
+        px = TRUE_CAMERA.project(cam)
+        seen = (cam[:, 2] > 1.0) & np.all((px > 5) & (px < [TRUE_CAMERA.width - 6, TRUE_CAMERA.height - 6]), axis=1)
+        ids = rng.permutation(np.flatnonzero(seen & (rng.random(len(points)) < 0.8)))
+        features.append(px[ids] + rng.normal(0.0, noise_px / np.sqrt(2.0), (len(ids), 2)))
+        feature_point.append(ids.astype(np.int64))
+    matches, wrong = _matches(rotations, feature_point, outlier_fraction, rng)
+    box = np.vstack([points, centres])
+    size = float(np.linalg.norm(box.max(axis=0) - box.min(axis=0)))
+    attitude = np.array([attitude_of(R) for R in rotations])
+    return SfmScene(TRUE_CAMERA, rotations, centres, points, features, feature_point, matches, wrong, attitude, size)

@@ -21,6 +21,7 @@ from PIL import Image
 from pyproj import Transformer
 
 from tests.scenes import FIRST_SHOT, SHOT_INTERVAL, _exif_bytes, make_texture
+from tests.sfm_scenes import dji_attitude
 from workers.algorithms.geometry import Camera, rotation_from_vector
 
 
@@ -80,12 +81,19 @@ def make_terrain_flight(
     k2: float = 0.02,
     seed: int = 0,
     origin_latlon: tuple[float, float] = (52.52, 13.40),
+    heading_follows_flight: bool = False,
+    attitude: tuple[str, ...] = (),
+    gps_noise_m: float = 0.0,
 ) -> TerrainFlight:
     """Render a serpentine grid flight (``rows`` lines of ``per_row`` frames) to JPEGs with EXIF GPS.
 
-    The camera looks down, turned by up to 8 degrees of yaw and tilted by up to ``tilt_deg``; GPS in
-    the EXIF is the exact centre (altitude above the datum), the 35 mm focal length is rounded to a
-    whole millimetre as EXIF stores it.
+    The camera looks down, turned by up to 8 degrees of yaw and tilted by up to ``tilt_deg``; with
+    ``heading_follows_flight`` the image top faces the direction of flight, so every other row is turned by
+    180 degrees. GPS in the EXIF is the centre (altitude above the datum) plus ``gps_noise_m`` of Gaussian
+    noise per axis; the 35 mm focal length is rounded to a whole millimetre as EXIF stores it. ``attitude``
+    gives, per row, the heading convention of the DJI XMP gimbal angles written with it ("yaw": the image
+    top faces the yaw; "yaw+180": it faces the opposite way, as on a Phantom 3; cycled over the rows), or
+    writes none when empty.
     """
     rng = np.random.default_rng(seed)
     w, h = frame_size
@@ -95,12 +103,14 @@ def make_terrain_flight(
     camera = Camera(w, h, focal, focal, (w - 1) / 2, (h - 1) / 2, k1=k1, k2=k2)
     foot_w, foot_h = altitude_m * w / focal, altitude_m * h / focal
     step_x, step_y = foot_w * (1 - overlap), foot_h * 0.55
-    centres, rotations = [], []
+    centres, rotations, conventions = [], [], []
     for r in range(rows):
         for c in range(per_row) if r % 2 == 0 else reversed(range(per_row)):
             x, y = (c - (per_row - 1) / 2) * step_x, ((rows - 1) / 2 - r) * step_y
             centres.append(np.array([x, y, altitude_m + rng.uniform(-2, 2)]))
-            rotations.append(_nadir_rotation(rng.uniform(-8, 8), rng.uniform(-tilt_deg, tilt_deg, 2)))
+            turn = 180.0 if heading_follows_flight and r % 2 else 0.0
+            rotations.append(_nadir_rotation(turn + rng.uniform(-8, 8), rng.uniform(-tilt_deg, tilt_deg, 2)))
+            conventions.append(attitude[r % len(attitude)] if attitude else "")
     extent = np.abs(np.array(centres)[:, :2]).max(axis=0) + np.array([foot_w, foot_h]) * 1.2
     gsd = altitude_m / focal  # the texture has the photos' own resolution at the datum
     tex = make_texture(int(2 * extent[1] / gsd) + 1, int(2 * extent[0] / gsd) + 1, seed=int(rng.integers(2**31)))
@@ -118,7 +128,8 @@ def make_terrain_flight(
         epsg,
         (float(east), float(north)),
     )
-    _render_frames(flight)
+    noise = rng.normal(0.0, gps_noise_m, (len(centres), 3)) if gps_noise_m > 0 else np.zeros((len(centres), 3))
+    _render_frames(flight, conventions, noise)
     return flight
 
 
@@ -130,7 +141,19 @@ def _nadir_rotation(yaw_deg: float, tilt_deg: np.ndarray) -> np.ndarray:
     return tilt @ down @ yaw.T
 
 
-def _render_frames(flight: TerrainFlight) -> None:
+def _xmp(R: np.ndarray, convention: str) -> bytes:
+    """A DJI XMP packet with the gimbal yaw / pitch / roll of world -> camera rotation ``R`` in ``convention``."""
+    # "yaw+180": the metadata describes the camera turned half a turn about its optical axis
+    yaw, pitch, roll = dji_attitude(np.diag([-1.0, -1.0, 1.0]) @ R if convention == "yaw+180" else R)
+    return (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+        f'drone-dji:GimbalYawDegree="{yaw:+.2f}" drone-dji:GimbalPitchDegree="{pitch:+.2f}" '
+        f'drone-dji:GimbalRollDegree="{roll:+.2f}"/></rdf:RDF></x:xmpmeta>'
+    ).encode()
+
+
+def _render_frames(flight: TerrainFlight, conventions: list[str], gps_noise: np.ndarray) -> None:
     cam = flight.camera
     u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64))
     rays = cam.unproject(np.column_stack([u.ravel(), v.ravel()]))
@@ -146,14 +169,18 @@ def _render_frames(flight: TerrainFlight) -> None:
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REFLECT,
         )
-        lon, lat = to_wgs84.transform(flight.origin_utm[0] + C[0], flight.origin_utm[1] + C[1])
+        fix = C + gps_noise[i]
+        lon, lat = to_wgs84.transform(flight.origin_utm[0] + fix[0], flight.origin_utm[1] + fix[1])
         pitch_mm = 36.0 / cam.width  # a full-frame-equivalent sensor: EXIF's 35 mm focal is focal * 36 / width
         exif = _exif_bytes(
-            gps=(float(lat), float(lon), float(C[2])),
+            gps=(float(lat), float(lon), float(fix[2])),
             focal_length_mm=round(cam.fx * pitch_mm),
             sensor_width_mm=36.0,
             pixels_per_cm=10.0 / pitch_mm,
             taken=FIRST_SHOT + i * SHOT_INTERVAL,
         )
         flight.paths[i].parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(flight.paths[i], "JPEG", quality=93, exif=exif)
+        extra = {"xmp": _xmp(R, conventions[i])} if conventions[i] else {}
+        Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(
+            flight.paths[i], "JPEG", quality=93, exif=exif, **extra
+        )

@@ -52,6 +52,7 @@ function qualityBody(report) {
   const rejected = list(report.frames_rejected);
   const known = Array.isArray(report.frames_used) || Array.isArray(report.frames_rejected);
   const nodes = [
+    ...warnings(report.warnings),
     factList([
       ["Mode", MODES[report.mode] || report.mode || "–", { "data-testid": "quality-mode-text" }],
       ["Frames used", known ? `${used.length} of ${used.length + rejected.length}` : "–", { "data-testid": "frames-used" }],
@@ -64,6 +65,12 @@ function qualityBody(report) {
   ];
   if (report.triangulation && typeof report.triangulation === "object") nodes.push(triangulationSection(report.triangulation));
   return nodes;
+}
+
+/** What a user must know before trusting the map (frames left out or placed again, GPS misfits), as alerts. */
+function warnings(items) {
+  return (Array.isArray(items) ? items : []).filter((text) => typeof text === "string")
+    .map((text) => h("p", { class: "alert warning", role: "status", "data-testid": "quality-warning" }, text));
 }
 
 /** "0.42 px (1.31 px at full resolution)": the working-scale RMS and the one in the photos' pixels. */
@@ -107,11 +114,12 @@ function triangulationSection(t) {
     h("h4", {}, "Per image"),
     dataTable({
       caption: "Reprojection residuals per image",
-      columns: [{ label: "Image" }, { label: "RMS px", num: true }, { label: "Observations", num: true }, { label: "GPS residual", num: true }],
+      columns: [{ label: "Image" }, { label: "Status" }, { label: "RMS px", num: true }, { label: "Observations", num: true },
+        { label: "Tie points offered", num: true }, { label: "GPS residual", num: true }],
       rows: list(t.images).map((img) => ({
-        attrs: { "data-testid": "image-residual-row" },
-        cells: [filename(img.name), formatNumber(img.rms_px, 2),
-          formatCount(img.observations), formatMetres(img.gps_residual_m)],
+        attrs: { "data-testid": "image-residual-row", "data-status": typeof img.status === "string" ? img.status : "" },
+        cells: [filename(img.name), typeof img.status === "string" ? img.status : "–", formatNumber(img.rms_px, 2),
+          formatCount(img.observations), formatCount(img.tie_points_offered), formatMetres(img.gps_residual_m)],
       })),
       attrs: { "data-testid": "image-residuals" },
       empty: "No per-image residuals in the report.",

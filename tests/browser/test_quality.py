@@ -222,7 +222,8 @@ def test_quality_card_shows_triangulation(watched_page, live_service, planar_job
 
     def splice(route: Any) -> None:
         report = route.fetch().json()
-        report.update(mode="ortho", triangulation=TRIANGULATION)
+        warning = "frame_028.jpg was placed again after the adjustment (it kept 3 of 410 tie points)"
+        report.update(mode="ortho", triangulation=TRIANGULATION, warnings=[warning])
         del report["gps_residual_rms_m"]
         route.fulfill(json=report)
 
@@ -233,7 +234,10 @@ def test_quality_card_shows_triangulation(watched_page, live_service, planar_job
     expect(page.get_by_test_id("rms-reprojection")).to_have_text("0.61 px (1.22 px at full resolution)")
     expect(page.get_by_test_id("gps-residual-rms")).to_have_text("–")  # missing field
     expect(page.get_by_test_id("image-residual-row")).to_have_count(28)
-    expect(page.get_by_test_id("image-residual-row").first.locator("td").nth(3)).to_have_text("–")
+    expect(page.get_by_test_id("image-residual-row").first.locator("td").nth(5)).to_have_text("–")  # GPS residual
+    expect(page.get_by_test_id("quality-warning")).to_have_text(
+        "frame_028.jpg was placed again after the adjustment (it kept 3 of 410 tie points)"
+    )
     expect(page.get_by_test_id("self-calibration")).to_contain_text("3012.40")
     rows = page.get_by_test_id("gcp-row")
     expect(rows).to_have_count(2)

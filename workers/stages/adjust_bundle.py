@@ -199,6 +199,9 @@ def triangulation_report(
                 "rms_px": per_frame.get(f.name, {}).get("rms_px"),
                 "observations": per_frame.get(f.name, {}).get("observations", 0),
                 "gps_residual_m": per_frame.get(f.name, {}).get("gps_residual_m"),
+                "tie_points_offered": per_frame.get(f.name, {}).get("tie_points_offered", 0),
+                "status": per_frame.get(f.name, {}).get("status", "not registered"),
+                "attitude": per_frame.get(f.name, {}).get("attitude"),
             }
             for f in frames
         ],
@@ -215,5 +218,7 @@ def triangulation_report(
             for gid, e in rep.get("gcps", {}).items()
         ],
         "checkpoint_rmse_m": rep.get("checkpoint_rmse_m"),
+        "warnings": rep.get("warnings", []),
+        "notes": rep.get("notes", []),
         "seconds": rep.get("seconds"),
     }

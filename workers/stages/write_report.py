@@ -58,11 +58,24 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     }
     if cfg.mode == "ortho":
         report["triangulation"] = ws.load_cameras()["report"]
+    report["warnings"] = _warnings(report)
     ws.save_report(report)
     if geo.georeferenced:
         ws.save_footprints(_footprint_collection(frames, footprints))
     progress(1.0, "report")
     return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
+
+
+def _warnings(report: dict[str, Any]) -> list[str]:
+    """What a user must know before trusting the map, in words (the viewer's quality card shows them)."""
+    out = list(report.get("triangulation", {}).get("warnings", []))
+    rejected = report["frames_rejected"]
+    if rejected and not any("left out" in w for w in out):
+        names = ", ".join(r["name"] for r in rejected)
+        out.insert(
+            0, f"{len(rejected)} of {len(rejected) + len(report['frames_used'])} frames are not in the map: {names}"
+        )
+    return out
 
 
 def _to_crs(geo: Georef, out_px: np.ndarray) -> np.ndarray:

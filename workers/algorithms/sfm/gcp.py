@@ -107,6 +107,8 @@ def parse_gcp_list(text: str, frame: LocalFrame) -> list[GroundControlPoint]:
     points: dict[str, dict[str, np.ndarray]] = {}
     for number, line in lines[1:]:
         gcp_id, xyz, image, pixel = _gcp_line(number, line)
+        if crs.is_geographic:
+            _check_lonlat(f"line {number}", xyz[0], xyz[1])
         first = names.setdefault(gcp_id, (number, xyz))
         if not np.allclose(first[1], xyz, rtol=0.0, atol=1e-6):
             raise ValueError(f"line {number}: GCP {gcp_id!r} has other coordinates on line {first[0]}")
@@ -116,7 +118,17 @@ def parse_gcp_list(text: str, frame: LocalFrame) -> list[GroundControlPoint]:
         seen[image] = pixel
     ids = list(names)
     local = frame.from_crs(np.array([names[i][1] for i in ids]), crs) if ids else np.zeros((0, 3))
+    for k, i in enumerate(ids):
+        if not np.all(np.isfinite(local[k])):
+            raise ValueError(f"line {names[i][0]}: GCP {i!r} lies outside the area its coordinate system covers")
     return [GroundControlPoint(i, local[k], points[i]) for k, i in enumerate(ids)]
+
+
+def _check_lonlat(where: str, lon: float, lat: float) -> None:
+    if not -90.0 <= lat <= 90.0:
+        raise ValueError(f"{where}: latitude {lat} is outside -90..90 degrees")
+    if not -180.0 <= lon <= 180.0:
+        raise ValueError(f"{where}: longitude {lon} is outside -180..180 degrees")
 
 
 def _gcp_line(number: int, line: str) -> tuple[str, tuple[float, float, float], str, np.ndarray]:
@@ -178,9 +190,15 @@ def _opensfm_point(
     if entry.get("position") is not None:
         pos = entry["position"]
         lla = [_number(pos, key, f"{where}.position") for key in ("longitude", "latitude", "altitude")]
+        _check_lonlat(f"{where}.position", lla[0], lla[1])
         position = frame.from_lonlat(np.array([lla]))[0]
+        if not np.all(np.isfinite(position)):
+            raise ValueError(f"{where}.position: cannot be placed in UTM zone {frame.epsg}")
     observations: dict[str, np.ndarray] = {}
-    for m, obs in enumerate(entry.get("observations", [])):
+    listed = entry.get("observations", [])
+    if not isinstance(listed, list):
+        raise ValueError(f"{where}.observations: expected a list of {{'shot_id': str, 'projection': [x, y]}}")
+    for m, obs in enumerate(listed):
         here = f"{where}.observations[{m}]"
         proj = obs.get("projection") if isinstance(obs, dict) else None
         if not isinstance(proj, list) or len(proj) != 2 or not isinstance(obs.get("shot_id"), str):

@@ -35,6 +35,8 @@ class ReconstructionState:
     gauge: tuple[int, int] | None = None
     reasons: dict[int, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    attitude: dict[int, str] = field(default_factory=dict)  # frame -> convention its prior was read in, or why unused
+    reinitialised: dict[int, str] = field(default_factory=dict)  # frame -> why it was placed again after adjusting
 
 
 def state_rotations(state: ReconstructionState) -> np.ndarray:
@@ -153,3 +155,22 @@ def register_by_relative_pose(state: ReconstructionState, frame: int) -> str | N
     state.rvecs[frame], state.registered[frame] = vector_from_rotation(Rf), True
     state.notes.append(f"frame {frame} placed by its relative pose to frame {r} ({int(use.sum())} points for scale)")
     return None
+
+
+def frame_observations(state: ReconstructionState) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (F,) int64: the observations the model keeps (active, of a triangulated track) and the tie
+    points its verified pairs offered (every track observation of the frame)."""
+    tr = state.tracks
+    n = len(state.registered)
+    kept = np.bincount(tr.frame[state.active & state.has_point[tr.track]], minlength=n)
+    return kept, np.bincount(tr.frame, minlength=n)
+
+
+def unregister(state: ReconstructionState, frames: Sequence[int]) -> None:
+    """Take ``frames`` out of the model, and the points that fewer than two registered frames still see; the
+    frames' observations become active again, for when they are placed anew."""
+    tr = state.tracks
+    state.registered[list(frames)] = False
+    state.active[np.isin(tr.frame, list(frames))] = True
+    seen = state.active & state.registered[tr.frame] & state.has_point[tr.track]
+    state.has_point &= np.bincount(tr.track[seen], minlength=len(state.has_point)) >= 2

@@ -38,18 +38,24 @@ from workers.algorithms.sfm.datum import (
     checkpoint_rmse,
     observations_by_frame,
     report_gcps,
-    rotation_from_attitude,
 )
 from workers.algorithms.sfm.gcp import GroundControlPoint
 from workers.algorithms.sfm.incremental import (
     ReconstructionState,
+    frame_observations,
     register_by_pnp,
     register_by_relative_pose,
     reprojection_errors,
     state_rotations,
     triangulate_tracks,
+    unregister,
 )
-from workers.algorithms.sfm.tracks import PairMatches, Tracks, build_tracks, initial_pair, verify_pairs
+from workers.algorithms.sfm.priors import check_attitude_priors
+from workers.algorithms.sfm.tracks import PairMatches, Tracks, build_tracks, initial_pair, relative_pose, verify_pairs
+
+MIN_KEPT_SHARE = 0.1  # a frame keeping fewer of the tie points its pairs offered is placed again
+GPS_MISFIT_SIGMAS = 5.0  # ... or one this many GPS accuracies from its fix
+GPS_WARNING_SIGMAS = 3.0  # the report warns of cameras this many GPS accuracies from their fixes
 
 
 @dataclass(frozen=True)
@@ -165,12 +171,13 @@ def reconstruct(
         return _empty(state, camera, names, seeded, started)
     camera = _grow(state, camera, options, priors, log)
     _complete(state, camera, options)
-    datum = "gps_attitude" if state.world else to_world(state, camera, priors, options)
-    for _ in range(3):  # adjust, then re-admit what now fits, until little changes (COLMAP's global loop)
-        camera, final = adjust_state(state, camera, options, priors, self_calibrate=True)
-        log.append(final)
-        if _complete(state, camera, options) < 0.02 * state.active.sum():
-            break
+    if state.world:  # seeded on GPS + attitude: settle the gauge the weak GPS priors leave loose (the fit to GPS)
+        to_world(state, camera, priors, options)
+        datum = "gps_attitude"
+    else:
+        datum = to_world(state, camera, priors, options)
+    camera = _adjust_until_settled(state, camera, options, priors, log)
+    camera = _recheck_frames(state, camera, options, priors, log)
     return _result(
         state,
         camera,
@@ -224,13 +231,20 @@ def _seed_attitude(
     attitude: Mapping[int, Attitude],
     log: list,
 ) -> bool:
-    """Cameras straight from GPS + attitude, then an adjustment. False, with the state reset, when the
-    metadata poses triangulate under a quarter of the tracks seen twice (attitude in another convention,
-    or wrong): the caller then starts incrementally."""
-    for f in range(len(state.registered)):
-        if f in attitude and f in priors.gps:
-            state.rvecs[f] = vector_from_rotation(rotation_from_attitude(attitude[f]))
+    """Cameras straight from GPS + attitude, then an adjustment. Each frame's attitude is first checked against
+    its pairs' relative poses in both heading conventions (``priors.check_attitude_priors``); a frame whose
+    prior fits neither is left for PnP (``_grow``). False, with the state reset, when the kept metadata poses
+    triangulate under a quarter of the tracks seen twice: the caller then starts incrementally."""
+    check = check_attitude_priors(_pair_poses(state), attitude, priors.gps)
+    for f, R in check.rotations.items():
+        if f in priors.gps:
+            state.rvecs[f] = vector_from_rotation(R)
             state.centres[f], state.registered[f] = priors.gps[f].position, True
+    state.attitude = {**check.conventions, **{f: f"not used: {why}" for f, why in check.rejected.items()}}
+    if check.rejected:
+        state.notes.append(f"attitude of {len(check.rejected)} frame(s) disagrees with their matches: placed by PnP")
+    if len(set(check.conventions.values())) > 1:
+        state.notes.append("the flight mixes heading conventions (image top at yaw, and at yaw + 180)")
     tr = state.tracks
     seen_twice = int((np.bincount(tr.track[state.registered[tr.frame]], minlength=len(state.has_point)) >= 2).sum())
     loose = 0.05 * max(camera.width, camera.height)  # metadata poses are a few degrees off
@@ -242,6 +256,7 @@ def _seed_attitude(
         )
         state.registered[:], state.has_point[:], state.active[:] = False, False, True
         state.rvecs[:], state.centres[:] = 0.0, 0.0
+        state.attitude = {}
         return False
     state.world = True
     log.append(adjust_state(state, camera, options, priors, self_calibrate=False)[1])
@@ -284,6 +299,80 @@ def _grow(
             last = int(state.registered.sum())
             camera, stats = adjust_state(state, camera, options, priors, self_calibrate=False)
             log.append(stats)
+    return camera
+
+
+def _adjust_until_settled(
+    state: ReconstructionState, camera: Camera, options: ReconstructionOptions, priors: Priors, log: list
+) -> Camera:
+    """Adjust with self-calibration, then re-admit what now fits, until little changes (at most three times,
+    as COLMAP's global loop)."""
+    for _ in range(3):
+        camera, stats = adjust_state(state, camera, options, priors, self_calibrate=True)
+        log.append(stats)
+        if _complete(state, camera, options) < 0.02 * state.active.sum():
+            break
+    return camera
+
+
+def _pair_poses(state: ReconstructionState) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """Every verified pair's relative pose from its essential matrix: (R, t) with ``X_j = R X_i + t``."""
+    out = {}
+    for (i, j), (fi, fj) in state.pairs.items():
+        R, t, _, _ = relative_pose(state.essential[(i, j)], state.normalised[i][fi], state.normalised[j][fj])
+        out[(i, j)] = (R, t)
+    return out
+
+
+def _misfits(state: ReconstructionState, priors: Priors, options: ReconstructionOptions) -> dict[int, str]:
+    """Registered frames the adjustment holds on too few observations (fewer than ``min_pnp_inliers``, or under
+    a tenth of the tie points their pairs offered), or far from their GPS fix (beyond ``GPS_MISFIT_SIGMAS`` of
+    its horizontal accuracy), with why."""
+    kept, offered = frame_observations(state)
+    out = {}
+    for f in map(int, np.flatnonzero(state.registered)):
+        need = max(options.min_pnp_inliers, int(MIN_KEPT_SHARE * offered[f]))
+        if kept[f] < need:
+            out[f] = f"the adjustment kept {kept[f]} of the {offered[f]} tie points its pairs offered (needs {need})"
+        elif state.world and f in priors.gps:
+            miss = float(np.linalg.norm((state.centres[f] - np.asarray(priors.gps[f].position))[:2]))
+            if miss > GPS_MISFIT_SIGMAS * priors.gps[f].sigma_h:
+                out[f] = f"its camera lies {miss:.1f} m from its GPS position (accuracy {priors.gps[f].sigma_h:g} m)"
+    return out
+
+
+def _recheck_frames(
+    state: ReconstructionState, camera: Camera, options: ReconstructionOptions, priors: Priors, log: list
+) -> Camera:
+    """Outlier rejection never empties a frame silently: every misfit frame (``_misfits``) is taken out and
+    placed again from the rest of the model by PnP on its tracks (else by its relative pose), and the model
+    adjusted again, twice at most; a frame that still keeps too few observations is left out (not registered,
+    with the reason); one that fits its matches but not its GPS stays, and the report says so."""
+    tr = state.tracks
+    for _ in range(2):
+        bad = _misfits(state, priors, options)
+        if not bad:
+            return camera
+        unregister(state, list(bad))
+        # tracks the misfits spoiled (their wrong rays failed the triangulation) from the frames that remain
+        state.active[~state.has_point[tr.track]] = True
+        triangulate_tracks(state, camera, ~state.has_point, options.outlier_threshold_px, options.min_angle_deg)
+        for f in sorted(bad, key=lambda f: -int(np.sum(tr.frame == f))):
+            why = register_by_pnp(state, f, camera, options.min_pnp_inliers, options.pnp_threshold_px)
+            if why:
+                why = register_by_relative_pose(state, f) and why
+            if why:
+                state.reasons[f] = f"{bad[f]}; placing it again failed: {why}"
+                continue
+            state.reinitialised[f] = bad[f]
+            seen = np.zeros(len(state.has_point), bool)
+            seen[tr.track[tr.frame == f]] = True
+            triangulate_tracks(state, camera, seen, options.outlier_threshold_px, options.min_angle_deg)
+        camera = _adjust_until_settled(state, camera, options, priors, log)
+    still = {f: why for f, why in _misfits(state, priors, options).items() if "tie points" in why}
+    if still:
+        unregister(state, list(still))
+        state.reasons.update({f: f"{why}, also after it was placed again" for f, why in still.items()})
     return camera
 
 
@@ -380,6 +469,7 @@ def _result(state: ReconstructionState, camera: Camera, priors: Priors, names: l
         "rejected_observations": int((~inl).sum()),
         "rms_reprojection_px": _num(bundle.rms(residuals.residual[inl])),
         "per_frame": _per_frame(state, priors, names, residuals),
+        "warnings": _warnings(state, priors, names),
         "gcps": gcp_report,
         "checkpoint_rmse_m": checkpoint_rmse(gcp_report),
         "camera": camera.to_json(),
@@ -399,15 +489,51 @@ def _frames_report(state: ReconstructionState, names: list[str]) -> dict:
 
 
 def _per_frame(state: ReconstructionState, priors: Priors, names: list[str], residuals: ObservationResiduals) -> dict:
+    """Per registered frame: its observations and the tie points its pairs offered, RMS, GPS residual, how its
+    attitude prior was read and whether it had to be placed again."""
     by_frame = bundle.rms_by_group(residuals.residual[residuals.inlier], residuals.frame[residuals.inlier])
+    _, offered = frame_observations(state)
     out: dict[str, dict] = {}
-    for f in np.flatnonzero(state.registered):
-        rms_px, count = by_frame.get(int(f), (float("nan"), 0))
-        entry: dict[str, Any] = {"rms_px": _num(rms_px), "observations": count}
-        if state.world and int(f) in priors.gps:
-            enu = state.centres[f] - np.asarray(priors.gps[int(f)].position)
+    for f in map(int, np.flatnonzero(state.registered)):
+        rms_px, count = by_frame.get(f, (float("nan"), 0))
+        entry: dict[str, Any] = {
+            "rms_px": _num(rms_px),
+            "observations": count,
+            "tie_points_offered": int(offered[f]),
+            "status": "placed again" if f in state.reinitialised else "registered",
+        }
+        if f in state.attitude:
+            entry["attitude"] = state.attitude[f]
+        if state.world and f in priors.gps:
+            enu = state.centres[f] - np.asarray(priors.gps[f].position)
             entry.update(gps_residual_m=_num(float(np.linalg.norm(enu))), gps_residual_enu_m=[_num(v) for v in enu])
         out[names[f]] = entry
+    return out
+
+
+def _warnings(state: ReconstructionState, priors: Priors, names: list[str]) -> list[str]:
+    """What a user must know before trusting the result, in words: frames left out, frames placed again, and
+    cameras further from their GPS fixes than the GPS accuracy allows."""
+    out = []
+    missing = [names[f] for f in np.flatnonzero(~state.registered)]
+    if missing:
+        out.append(f"{len(missing)} of {len(names)} frames could not be placed and are left out: {', '.join(missing)}")
+    for f, why in sorted(state.reinitialised.items()):
+        if state.registered[f]:
+            out.append(f"{names[f]} was placed again after the adjustment ({why})")
+    if state.world:
+        far = []
+        for f in map(int, np.flatnonzero(state.registered)):
+            if f in priors.gps:
+                miss = float(np.linalg.norm((state.centres[f] - np.asarray(priors.gps[f].position))[:2]))
+                if miss > GPS_WARNING_SIGMAS * priors.gps[f].sigma_h:
+                    far.append(f"{names[f]} {miss:.1f} m")
+        if far:
+            sigma = max(priors.gps[f].sigma_h for f in priors.gps)
+            out.append(
+                f"{len(far)} camera(s) lie further from their GPS positions than {GPS_WARNING_SIGMAS:g} x the "
+                f"GPS accuracy ({sigma:g} m): {', '.join(far)}"
+            )
     return out
 
 
