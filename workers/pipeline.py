@@ -116,8 +116,9 @@ def stage_function(stage: str) -> Callable[..., dict[str, Any]]:
 def run_stage(
     ws: JobWorkspace, pipeline: str, stage: str, progress: ProgressFn = noop_progress, rerun: bool = False
 ) -> dict[str, Any]:
-    """Run one stage over ``ws`` unless its report says it already ran; save and return its report."""
-    if not rerun and (done := ws.load_stage_report(stage)) is not None:
+    """Run one stage over ``ws`` unless its report says it already ran and its files are all there; save and
+    return its report."""
+    if not rerun and (done := ws.load_stage_report(stage)) is not None and ws.stage_outputs_present(stage):
         return done
     cfg = build_config(job_kind(pipeline), ws.load_config())
     started = time.perf_counter()

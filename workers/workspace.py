@@ -366,6 +366,46 @@ class JobWorkspace:
         path = self._stage_report_file(stage)
         return dict(read_json(path)) if path.exists() else None
 
+    def stage_outputs_present(self, stage: str) -> bool:
+        """Whether every file pipeline stage ``stage`` writes is still there: a finished stage whose files were
+        lost (a cleaned scratch disk, a restored backup) runs again instead of being skipped."""
+        return all(path.exists() for path in self._stage_outputs(stage))
+
+    def _stage_outputs(self, stage: str) -> list[Path]:
+        """The files ``stage`` writes (those of its inputs that name them, such as frames.json, must exist)."""
+        r = self.root
+        frames = [f.index for f in self.load_frames()] if (r / "frames.json").exists() else []
+        steps = range(len(self.load_config().get("stages", []))) if self.has_config() else range(0)
+        ortho = (
+            [self._ortho_image_file(k) for k in self.load_alignment().homographies]
+            if (r / "alignment.json").exists()
+            else []
+        )
+        outputs = {
+            "load_images": [r / "frames.json", *(self._working_image_file(k) for k in frames)],
+            "detect_features": [r / "frames.json", *(self._features_file(k) for k in frames)],
+            "match_features": [r / "pairs.json"],
+            "align_frames": [r / "alignment.json"],
+            "georeference": [r / "georef.json"],
+            "adjust_bundle": [r / "cameras.json"],
+            "orthorectify_frames": [r / "alignment.json", r / "georef.json", *ortho],
+            "compose_mosaic": [r / "coverage.json", self.mosaic_path()],
+            "write_report": [r / "report.json"],
+            "detect_corners": [r / "corners.json"],
+            "calibrate_camera": [r / "calibration.json"],
+            "fit_plumb_line": [r / "calibration.json"],
+            "calibrate_stereo": [r / "calibration.json"],
+            "orient_camera": [r / "orientation.json"],
+            "rectify_specimen": [self._surface_file(), *(self._rectified_file(s) for s in steps)],
+            "detect_cracks": [self._crack_mask_file(s) for s in steps],
+            "measure_cracks": [r / f"cracks/stage_{s:02d}.json" for s in steps],
+            "compare_stages": [r / "comparison.json"],
+            "write_crack_report": [r / "report.json", r / "cracks.csv", *(self.load_step_cog_path(s) for s in steps)],
+        }
+        if stage == "match_features" and (r / "pairs.json").exists():
+            outputs[stage] += [self._matches_file(p.pair) for p in self.load_pairs() if p.accepted]
+        return outputs.get(stage, [])
+
     def forget_stage_report(self, stage: str) -> None:
         """Make pipeline stage ``stage`` run again on the next delivery (its report marks it done)."""
         self._stage_report_file(stage).unlink(missing_ok=True)

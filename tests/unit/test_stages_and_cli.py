@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
+import rasterio
 
 from api.cli import build_parser, main
 from tests.scenes import make_flight
@@ -68,3 +70,34 @@ def test_the_mosaic_does_not_depend_on_the_window_size(tmp_path: Path) -> None:
         assert src.width > 256 and src.height > 256  # several windows in each direction
         assert np.array_equal(src.dataset_mask(), whole_mask)
         assert np.abs(src.read().astype(int) - whole).max() <= 1  # float rounding only
+
+
+def test_a_finished_stage_whose_files_were_lost_runs_again(tmp_path: Path) -> None:
+    """A retry after working files were lost: the stages whose files are gone run again (not skipped for
+    their report), the others are skipped, and the mosaic comes out the same."""
+    make_flight(tmp_path / "frames", n_frames=3, frame_size=(320, 240), seed=1)
+    process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 320})
+    ws = JobWorkspace(tmp_path / "job")
+    with rasterio.open(ws.mosaic_path()) as src:
+        before = src.read()
+    features = sorted((ws.root / "features").iterdir())
+    mtimes = {p: p.stat().st_mtime_ns for p in features}
+    (ws.root / "work" / "frame_0001.npy").unlink()  # a lost working copy
+    ws.mosaic_path().unlink()
+    assert not ws.stage_outputs_present("load_images") and ws.stage_outputs_present("detect_features")
+    for name in stage_names("mosaic"):
+        run_stage(ws, "mosaic", name)
+    assert (ws.root / "work" / "frame_0001.npy").exists()
+    assert {p: p.stat().st_mtime_ns for p in features} == mtimes  # detect_features was skipped
+    with rasterio.open(ws.mosaic_path()) as src:
+        np.testing.assert_array_equal(src.read(), before)
+
+
+def test_every_stage_names_the_files_it_writes(tmp_path: Path) -> None:
+    from workers.pipeline import PIPELINES
+
+    ws = JobWorkspace(tmp_path)
+    ws.save_config({"stages": [{"label": "0 kN"}, {"label": "5 kN"}]})
+    for pipeline in PIPELINES:
+        for name in stage_names(pipeline):
+            assert not ws.stage_outputs_present(name), f"{name} names no file it writes"
