@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 from fastapi import UploadFile
+from starlette.concurrency import run_in_threadpool
 
 from api.errors import InvalidInputError, TooLargeError
 from api.job_service import validated_config
@@ -24,7 +25,8 @@ from core.db import Database, Job
 from core.kinds import JobKind, JobStatus
 from core.settings import Settings
 from workers.algorithms.geometry import Camera
-from workers.algorithms.specimen import Mesh, distance_to_surface, plane_through, read_mesh
+from workers.algorithms.specimen import Mesh, best_fit_plane, distance_to_surface, plane_through, read_mesh
+from workers.config import MAX_ID, check_raster_size
 from workers.workspace import job_workspace, specimen_model_path
 
 ON_MESH_TOLERANCE = 0.005  # a mesh's control points must lie this close to its surface, times its diagonal
@@ -66,8 +68,8 @@ def with_calibration_camera(db: Database, settings: Settings, options: dict[str,
         return options
     if "camera" in options:
         raise InvalidInputError("options: give camera or calibration_job, not both")
-    if not isinstance(job_id, int) or isinstance(job_id, bool):
-        raise InvalidInputError("options.calibration_job: the id (an integer) of a calibration job")
+    if not isinstance(job_id, int) or isinstance(job_id, bool) or not 1 <= job_id <= MAX_ID:
+        raise InvalidInputError(f"options.calibration_job: the id (an integer from 1 to {MAX_ID}) of a calibration job")
     with db.session() as s:
         job = s.get(Job, job_id)
         if job is None or job.kind != JobKind.calibration:
@@ -95,14 +97,24 @@ async def _mesh_attachment(config: dict[str, Any], model: UploadFile | None, max
     data = await model.read(max_bytes + 1)
     if len(data) > max_bytes:
         raise TooLargeError(f"{name}: file is larger than {max_bytes} bytes")
+    await run_in_threadpool(_check_mesh, data, name, config)  # parsing is slow: not on the event loop
+    return {str(specimen_model_path(name)): data}
+
+
+def _check_mesh(data: bytes, name: str, config: dict[str, Any]) -> None:
+    """The mesh in ``data`` parses; its plane, its raster's size and the control points on it are valid."""
+    plane = config["specimen"]["plane"]
     try:
         mesh = read_mesh(data, name)
-        if config["specimen"]["plane"] is not None:
-            plane_through(mesh, np.array(config["specimen"]["plane"]))
+        frame = best_fit_plane(mesh) if plane is None else plane_through(mesh, np.array(plane))
     except ValueError as exc:
         raise InvalidInputError(f"options.specimen: {exc}") from None
+    width_mm, height_mm = frame.to_plane(mesh.vertices).max(axis=0)[:2]  # as rectify_specimen sizes it
+    try:
+        check_raster_size(float(width_mm), float(height_mm), config["mm_per_px"])
+    except ValueError as exc:
+        raise InvalidInputError(f"options.mm_per_px: {name}: {exc}") from None
     _check_on_mesh(mesh, config["stages"])
-    return {str(specimen_model_path(name)): data}
 
 
 def _check_on_mesh(mesh: Mesh, stages: list[dict[str, Any]]) -> None:

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, Path, Query, Request
 
 from api.queue import JobQueue
 from core.db import Database
 from core.settings import Settings
+from workers.config import MAX_ID
 
 
 def get_settings(request: Request) -> Settings:
@@ -26,3 +27,10 @@ def get_queue(request: Request) -> JobQueue:
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 DbDep = Annotated[Database, Depends(get_db)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
+
+# Ids and indices in a path or query are bounded to what the database holds (signed 64-bit), so a larger
+# number is answered 422 instead of overflowing the driver.
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="the job's id")]
+FlightId = Annotated[int, Path(ge=1, le=MAX_ID, description="the flight's id")]
+FlightFilter = Annotated[int | None, Query(ge=1, le=MAX_ID, description="only the jobs of this flight")]
+TileIndex = Annotated[int, Path(ge=-MAX_ID - 1, le=MAX_ID)]  # a zoom, column, row or load step

@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import json
+import math
+from typing import Any
+
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+
+MAX_ECHO_CHARS = 200  # a 422 shows at most this much of the value it refuses
 
 
 class ApiError(Exception):
@@ -43,6 +51,33 @@ class UnavailableError(ApiError):
 def install_error_handlers(app: FastAPI) -> None:
     async def handle(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ApiError)
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+        return JSONResponse({"detail": _encodable(exc.detail)}, status_code=exc.status_code)
+
+    async def handle_invalid_request(_request: Request, exc: Exception) -> JSONResponse:
+        """FastAPI's 422 (one entry per problem: loc, msg, type), with the refused ``input`` cut short."""
+        assert isinstance(exc, RequestValidationError)
+        problems = [{**e, "input": shown(e.get("input"))} for e in exc.errors()]
+        return JSONResponse({"detail": jsonable_encoder(problems)}, status_code=422)
 
     app.add_exception_handler(ApiError, handle)
+    app.add_exception_handler(RequestValidationError, handle_invalid_request)
+
+
+def shown(value: Any) -> Any:
+    """A refused value as a 422 may show it: small numbers and short strings as they are, anything else as
+    JSON text, cut to ``MAX_ECHO_CHARS``: a response never echoes a huge input back."""
+    if value is None or isinstance(value, bool) or (isinstance(value, int) and value.bit_length() <= 600):
+        return value
+    if isinstance(value, float) and math.isfinite(value):
+        return value
+    if not isinstance(value, str):
+        try:
+            value = json.dumps(jsonable_encoder(value), ensure_ascii=False)
+        except (ValueError, TypeError, RecursionError):  # NaN, an integer too long to print
+            value = f"<{type(value).__name__}>"
+    return _encodable(value if len(value) <= MAX_ECHO_CHARS else value[:MAX_ECHO_CHARS] + "...")
+
+
+def _encodable(text: str) -> str:
+    """``text`` with anything UTF-8 cannot encode (a lone surrogate) replaced by ``?``."""
+    return text.encode("utf-8", "replace").decode("utf-8")

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from api.errors import InvalidInputError, NotFoundError, TooLargeError
+from api.limits import check_json
 from core.db import Database, Flight
 from workers.algorithms.sfm import GCP_FILE_NAMES, GroundControlPoint, LocalFrame, gcp_file_name, parse_gcp_file
 from workers.workspace import atomic_path, find_gcp_file, flight_folder
@@ -32,6 +33,8 @@ def store_gcps(db: Database, data_dir: Path, flight_id: int, filename: str, cont
     name = gcp_file_name(filename)
     try:
         text = content.decode("utf-8")
+        if name == GCP_FILE_NAMES[1]:  # OpenSfM's JSON: bounded before it is parsed
+            check_json(text, filename, MAX_GCP_BYTES)
         gcps = parse_gcp_file(name, text, sizes, CHECK_FRAME)
     except UnicodeDecodeError:
         raise InvalidInputError(f"{filename}: not a UTF-8 text file") from None

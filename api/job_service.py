@@ -17,6 +17,7 @@ from api.queue import JobQueue
 from core.db import Database, Flight, Job
 from core.kinds import JobStatus
 from core.settings import Settings
+from workers.algorithms.geometry import Camera
 from workers.config import build_config
 from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import flight_folder, job_workspace
@@ -40,12 +41,28 @@ def job_out(job: Job) -> JobOut:
     )
 
 
+CAMERA_OPTIONS = ("camera", "left_camera", "right_camera")  # free-form camera JSON, checked by Camera.from_json
+
+
 def validated_config(kind: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The config of a ``kind`` job with ``options`` merged over its defaults, every camera in it parsed;
+    422 naming the option otherwise."""
     try:
-        return build_config(kind, options).model_dump()
+        config = build_config(kind, options).model_dump()
     except ValidationError as exc:
-        problems = "; ".join(f"options.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(f"{_option(e['loc'])}: {e['msg']}" for e in exc.errors()[:10])
         raise InvalidInputError(problems) from None
+    for name in CAMERA_OPTIONS:
+        if config.get(name) is not None:
+            try:
+                Camera.from_json(config[name])
+            except ValueError as exc:
+                raise InvalidInputError(f"options.{name}: {exc}") from None
+    return config
+
+
+def _option(loc: tuple[int | str, ...]) -> str:
+    return ".".join(["options", *map(str, loc)])
 
 
 def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreate) -> JobOut:

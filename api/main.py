@@ -6,6 +6,7 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
 from api.errors import install_error_handlers
+from api.limits import JsonBodyLimits
 from api.queue import CeleryQueue, JobQueue
 from api.routes import calibrations, crack_surveys, flights, jobs, tiles, web
 from core.db import Database
@@ -27,6 +28,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.db = Database(settings.resolved_database_url())
     app.state.queue = queue or CeleryQueue(settings.redis_url, settings.celery_queue)
     install_error_handlers(app)
+    app.add_middleware(JsonBodyLimits)  # size, depth and numbers of a JSON body, before it is parsed
     for module in (flights, jobs, calibrations, crack_surveys, tiles, web):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=settings.web_dir), name="static")

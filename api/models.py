@@ -5,9 +5,9 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from workers.config import Marks
+from workers.config import MAX_ID, MAX_PHOTOS, Marks, Pixel
 
 
 class FlightCreate(BaseModel):
@@ -15,6 +15,13 @@ class FlightCreate(BaseModel):
 
     name: str = Field(min_length=1, max_length=200)
     description: str = Field("", max_length=5000)
+
+    @field_validator("name", "description")
+    @classmethod
+    def _no_nul(cls, value: str) -> str:
+        if "\x00" in value:  # PostgreSQL's text cannot hold it
+            raise ValueError("must not contain NUL characters")
+        return value
 
 
 class GpsFix(BaseModel):
@@ -58,7 +65,7 @@ class UploadResult(BaseModel):
 class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    flight_id: int
+    flight_id: int = Field(ge=1, le=MAX_ID)
     # JobKind.mosaic, spelled as a plain Literal: a Literal of the enum member would validate the same but
     # word its 422 message differently ("Input should be <JobKind.mosaic: 'mosaic'>")
     kind: Literal["mosaic"] = "mosaic"
@@ -102,14 +109,14 @@ class JobResultOut(BaseModel):
 class MarksUpdate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    markers: list[Marks] = Field(min_length=1)  # per photo: new marks, or remove: true
+    markers: list[Marks] = Field(min_length=1, max_length=MAX_PHOTOS)  # per photo: new marks, or remove: true
 
 
 class MeasureRequest(BaseModel):
     """Pixel positions of the same points in the left and right photo of a calibrated rig."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    left: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
-    right: list[tuple[float, float]] = Field(min_length=1, max_length=200)  # same points, right photo
+    left: list[tuple[Pixel, Pixel]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
+    right: list[tuple[Pixel, Pixel]] = Field(min_length=1, max_length=200)  # same points, right photo
     perturb_px: float = Field(0.5, gt=0.0, le=10.0)  # marking accuracy used for the uncertainty, px

@@ -7,7 +7,6 @@ photos moved into the job's folder; a failed request leaves nothing behind.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import uuid
@@ -19,6 +18,7 @@ from fastapi import UploadFile
 
 from api.errors import InvalidInputError, NotFoundError
 from api.job_service import enqueue, job_out
+from api.limits import parse_json
 from api.models import JobOut
 from api.queue import JobQueue
 from api.uploads import StagedFile, stage_images, stored_name
@@ -32,10 +32,7 @@ def parse_options(raw: str | None) -> dict[str, Any]:
     """The multipart ``options`` field: a JSON object, or empty."""
     if not raw:
         return {}
-    try:
-        options = json.loads(raw)
-    except json.JSONDecodeError as exc:
-        raise InvalidInputError(f"options: not valid JSON ({exc.msg} at character {exc.pos})") from None
+    options = parse_json(raw, "options")  # bounded: size, depth, finite numbers
     if not isinstance(options, dict):
         raise InvalidInputError("options: must be a JSON object")
     return options

@@ -8,7 +8,7 @@ without loading OpenCV or the stage code.
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
@@ -17,11 +17,31 @@ from core.kinds import JobKind
 DistortionTerm = Literal["k1", "k2", "k3", "t1", "t2"]
 Convention = Literal["distort_ideal", "restore_ideal"]
 
+# -- Bounds on every option (a number outside them, NaN or Infinity is refused with the option named) ----
+MAX_ID = 2**63 - 1  # ids of flights and jobs: signed 64-bit integers, as the database holds them
+MAX_NAME_CHARS = 255  # a photo's, mesh's or GCP's name
+MAX_PIXEL = 1e6  # |pixel coordinate|, px; photos are at most 100 000 px a side
+MAX_MM = 1e7  # |board or specimen coordinate|, mm (10 km)
+MAX_PHOTOS = 1000  # photos named by one job's options (a request holds at most 1000 files)
+MAX_POINTS = 10_000  # points marked on one photo or along one line (a 100 x 100 chessboard)
+MAX_CONTROL_POINTS = 1000  # control points of one photo of a crack survey
+MAX_LOAD_STEPS = 100  # load steps (options.stages) of one crack survey
+MAX_CHECKPOINTS = 1000  # GCP names held out as check points
+MAX_LINES = 1000  # straight lines of a plumb-line calibration
+MAX_RASTER_PIXELS = 200_000_000  # a crack survey's rectified raster; the same limit as rectify_specimen's
+
+Name = Annotated[str, Field(min_length=1, max_length=MAX_NAME_CHARS)]
+Pixel = Annotated[float, Field(ge=-MAX_PIXEL, le=MAX_PIXEL)]
+Millimetres = Annotated[float, Field(ge=-MAX_MM, le=MAX_MM)]
+Side = Annotated[int, Field(ge=1, le=100_000)]  # a photo's width or height, px
+# every config model: unknown options and NaN or Infinity refused, and the defaults held to the bounds too
+OPTIONS = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=True)
+
 
 class MosaicConfig(BaseModel):
     """Options of a ``mosaic`` job; a request's ``options`` are merged on top of these defaults."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
     # planar: frames chained by homographies onto one plane (flat ground, no camera model);
     # ortho: photo-triangulation (bundle adjustment with GPS and GCPs), then every frame is
@@ -38,7 +58,7 @@ class MosaicConfig(BaseModel):
     max_features: int = Field(6000, ge=100, le=100000)  # SIFT keypoints kept per frame
     ratio_test: float = Field(0.75, gt=0.0, lt=1.0)  # Lowe's nearest/second-nearest distance ratio
     ransac_threshold_px: float = Field(2.0, gt=0.0, le=50.0)  # USAC inlier threshold, working px
-    min_inliers: int = Field(25, ge=8)  # a pair with fewer homography inliers is not an overlap
+    min_inliers: int = Field(25, ge=8, le=100000)  # a pair with fewer homography inliers is not an overlap
     min_inlier_ratio: float = Field(0.15, ge=0.0, le=1.0)  # inliers / ratio-test matches, same
     max_pair_gap: int = Field(3, ge=1, le=50)  # with GPS: also try frames this far apart in order
     gps_neighbours: int = Field(6, ge=0, le=50)  # with GPS: nearest frames (by position) to try
@@ -49,23 +69,26 @@ class MosaicConfig(BaseModel):
     feather_px: float = Field(60.0, ge=1.0, le=2000.0)  # width of the blending ramp at frame edges, px
     block_px: int = Field(1024, ge=256, le=8192)  # output window edge when composing, px
     cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec for the mosaic
-    min_gps_frames: int = Field(3, ge=2)  # georeference only with at least this many GPS fixes
+    min_gps_frames: int = Field(3, ge=2, le=10000)  # georeference only with at least this many GPS fixes
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
-    self_calibrate: list[Literal["focal", "k1", "k2"]] = ["focal", "k1", "k2"]  # intrinsics the adjustment refines
+    # intrinsics the adjustment refines
+    self_calibrate: list[Literal["focal", "k1", "k2"]] = Field(["focal", "k1", "k2"], max_length=3)
     gps_sigma_m: float = Field(5.0, gt=0.0, le=1000.0)  # accuracy of the frames' GPS positions, m
     gcp_sigma_m: float = Field(0.02, gt=0.0, le=100.0)  # accuracy of the ground control points, m
-    checkpoints: list[str] = []  # GCP names held out of the adjustment and reported as check points
+    # GCP names held out of the adjustment and reported as check points
+    checkpoints: list[Name] = Field([], max_length=MAX_CHECKPOINTS)
     robust_loss_px: float = Field(2.0, gt=0.0, le=50.0)  # Huber scale of reprojection residuals, px
     outlier_px: float = Field(4.0, gt=0.0, le=100.0)  # observations beyond this after a first solve are dropped
-    ground_elevation_m: float | None = None  # ortho plane height; None: median height of the tie points
+    # ortho plane height, m (the GPS altitudes' datum); None: median height of the tie points
+    ground_elevation_m: float | None = Field(None, ge=-1000.0, le=10000.0)
     max_ground_range: float = Field(4.0, gt=0.0, le=100.0)  # ortho: clip frames to this many flying heights
 
 
 class CalibrationConfig(BaseModel):
     """Options of a ``calibration`` job: one camera from chessboards, marked points or straight lines."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
     # chessboard: corners found by OpenCV; markers: image points marked by hand with their board
     # coordinates; plumb_line: distortion only, from points along lines that are straight in the world
@@ -73,10 +96,13 @@ class CalibrationConfig(BaseModel):
     pattern: tuple[int, int] = (9, 6)  # chessboard inner corners (columns, rows)
     square_mm: float = Field(25.0, gt=0.0, le=10000.0)  # chessboard square edge, mm
     convention: Convention = "distort_ideal"  # how the distortion terms are applied (see camera.py)
-    terms: list[DistortionTerm] = ["k1", "k2", "t1", "t2", "k3"]  # distortion terms to estimate
-    markers: list[Marks] = []  # marked points per image; for chessboard jobs they replace detected corners
-    lines: list[list[tuple[float, float]]] = []  # plumb_line: pixel points along each straight line
-    image_size: tuple[int, int] | None = None  # plumb_line without images: (width, height) px
+    terms: list[DistortionTerm] = Field(["k1", "k2", "t1", "t2", "k3"], max_length=5)  # distortion terms to estimate
+    # marked points per image; for chessboard jobs they replace detected corners
+    markers: list[Marks] = Field([], max_length=MAX_PHOTOS)
+    # plumb_line: pixel points along each straight line
+    lines: list[Annotated[list[tuple[Pixel, Pixel]], Field(max_length=MAX_POINTS)]] = Field([], max_length=MAX_LINES)
+    # plumb_line without images: (width, height) px
+    image_size: tuple[Side, Side] | None = None
     camera: dict[str, Any] | None = None  # plumb_line: intrinsics to normalise with (camera JSON)
 
     _pattern = field_validator("pattern")(lambda v: _check_pattern(v))
@@ -85,23 +111,24 @@ class CalibrationConfig(BaseModel):
 class Marks(BaseModel):
     """Points marked on one image: pixel positions and their board coordinates (mm)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
-    image: str = Field(min_length=1)  # the image's file name as uploaded
-    image_points: list[tuple[float, float]] = []  # pixel (x, y)
-    board_points: list[tuple[float, float, float]] = []  # board (X, Y, Z), mm; same order
+    image: Name  # the image's file name as uploaded
+    image_points: list[tuple[Pixel, Pixel]] = Field([], max_length=MAX_POINTS)  # pixel (x, y)
+    # board (X, Y, Z), mm; same order
+    board_points: list[tuple[Millimetres, Millimetres, Millimetres]] = Field([], max_length=MAX_POINTS)
     remove: bool = False  # true: drop this image from the solve
 
 
 class StereoCalibrationConfig(BaseModel):
     """Options of a ``stereo_calibration`` job: a two-camera rig from paired chessboard images."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
     pattern: tuple[int, int] = (9, 6)  # chessboard inner corners (columns, rows)
     square_mm: float = Field(25.0, gt=0.0, le=10000.0)  # chessboard square edge, mm
     convention: Convention = "distort_ideal"  # distortion convention of both cameras
-    terms: list[DistortionTerm] = ["k1", "k2", "t1", "t2", "k3"]  # distortion terms per camera
+    terms: list[DistortionTerm] = Field(["k1", "k2", "t1", "t2", "k3"], max_length=5)  # distortion terms per camera
     left_camera: dict[str, Any] | None = None  # fixed intrinsics (camera JSON); None: calibrated here
     right_camera: dict[str, Any] | None = None  # same, right camera
 
@@ -114,17 +141,21 @@ def _check_pattern(pattern: tuple[int, int]) -> tuple[int, int]:
     return pattern
 
 
+Point = tuple[Millimetres, Millimetres, Millimetres]  # model (X, Y, Z), mm
+
+
 class Specimen(BaseModel):
     """The specimen's model: a plate (X right, Y down, Z = 0 on its surface, mm) or a triangle mesh in mm."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
     width_mm: float | None = Field(None, gt=0.0, le=100000.0)  # plate: extent along X, mm
     height_mm: float | None = Field(None, gt=0.0, le=100000.0)  # plate: extent along Y, mm
-    mesh: str | None = Field(None, min_length=1)  # mesh: the uploaded model file's name (OBJ, PLY or STL, mm)
+    # mesh: the uploaded model file's name (OBJ, PLY or STL, mm)
+    mesh: str | None = Field(None, min_length=1, max_length=MAX_NAME_CHARS)
     # mesh: the plane it is rectified onto, as three model points (origin, toward +x, on the +y side);
     # None: the surface's best-fit plane
-    plane: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]] | None = None
+    plane: tuple[Point, Point, Point] | None = None
 
     @model_validator(mode="after")
     def _one_model(self) -> Specimen:
@@ -141,42 +172,43 @@ class Specimen(BaseModel):
 class ControlPoint(BaseModel):
     """A point marked on a photo and its position on the specimen."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
-    pixel: tuple[float, float]  # photo pixel (x, y), (0, 0) the centre of the first pixel
-    model: tuple[float, float, float]  # specimen (X, Y, Z), mm; Z = 0 on the surface
+    pixel: tuple[Pixel, Pixel]  # photo pixel (x, y), (0, 0) the centre of the first pixel
+    model: Point  # specimen (X, Y, Z), mm; Z = 0 on the surface
 
 
 class SurveyPhoto(BaseModel):
     """One photo of a load stage and its control points."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
-    image: str = Field(min_length=1)  # the photo's file name as uploaded
-    control_points: list[ControlPoint]  # at least 4, not all on one line
+    image: Name  # the photo's file name as uploaded
+    control_points: list[ControlPoint] = Field(max_length=MAX_CONTROL_POINTS)  # at least 4, not all on one line
 
 
 class LoadStage(BaseModel):
     """The photos taken at one load."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
     label: str = Field(min_length=1, max_length=100)  # e.g. "0 kN", "stage 2"
-    load: float | None = None  # the applied load, in the user's unit; reported as given
-    photos: list[SurveyPhoto] = Field(min_length=1)
+    load: float | None = Field(None, ge=-1e12, le=1e12)  # the applied load, in the user's unit; reported as given
+    photos: list[SurveyPhoto] = Field(min_length=1, max_length=MAX_PHOTOS)
 
 
 class CrackSurveyConfig(BaseModel):
     """Options of a ``crack_survey`` job: cracks of a planar specimen measured in mm at each load stage."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = OPTIONS
 
     camera: dict[str, Any]  # the calibrated camera (camera JSON) that took every photo
     # the calibration job the camera came from: a request may name it instead of giving camera, and the
     # API copies that job's camera into camera, so the survey keeps the camera it was measured with
-    calibration_job: int | None = Field(None, ge=1)
+    calibration_job: int | None = Field(None, ge=1, le=MAX_ID)
     specimen: Specimen
-    stages: list[LoadStage] = Field(min_length=1)  # in load order; each stage is compared with the one before
+    # in load order; each stage is compared with the one before
+    stages: list[LoadStage] = Field(min_length=1, max_length=MAX_LOAD_STEPS)
     mm_per_px: float = Field(0.2, ge=0.005, le=50.0)  # resolution of the rectified specimen images, mm per px
     max_rms_px: float = Field(5.0, gt=0.0, le=100.0)  # a photo whose control points fit worse fails the job, px
     # how a stage with several photos is composed: at each point the photo that sees it most
@@ -209,6 +241,27 @@ class CrackSurveyConfig(BaseModel):
                 if specimen is not None:
                     _check_control_points(f"stage {s} photo {p} ({photo.image})", photo.control_points, specimen)
         return stages
+
+    @field_validator("mm_per_px")
+    @classmethod
+    def _check_raster(cls, mm_per_px: float, info: ValidationInfo) -> float:
+        specimen = info.data.get("specimen")  # a mesh's size is known once the mesh is read (the API)
+        if specimen is not None and specimen.width_mm is not None and specimen.height_mm is not None:
+            check_raster_size(specimen.width_mm, specimen.height_mm, mm_per_px)
+        return mm_per_px
+
+
+def check_raster_size(width_mm: float, height_mm: float, mm_per_px: float) -> None:
+    """``ValueError`` when the rectified raster of a specimen this large is over ``MAX_RASTER_PIXELS``.
+
+    Its shape is ``specimen.raster_shape``'s (pixel centres every ``mm_per_px`` from 0 to the extents)."""
+    rows = math.floor(height_mm / mm_per_px + 1e-9) + 1
+    cols = math.floor(width_mm / mm_per_px + 1e-9) + 1
+    if rows * cols > MAX_RASTER_PIXELS:
+        raise ValueError(
+            f"the specimen is {cols} x {rows} px at {mm_per_px} mm/px, more than {MAX_RASTER_PIXELS} px; "
+            "choose a coarser mm_per_px"
+        )
 
 
 MIN_CONTROL_POINTS = 4  # a plane-to-photo mapping has 8 degrees of freedom

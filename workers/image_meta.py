@@ -3,6 +3,7 @@ DJI XMP attitude). Pillow only: the API uses this without loading OpenCV."""
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from dataclasses import dataclass
@@ -130,12 +131,13 @@ def _as_float(value: Any, positive: bool = True) -> float | None:
         result = float(value)
     except (TypeError, ValueError, ZeroDivisionError):
         return None
-    if result != result or (positive and result <= 0):
+    if not math.isfinite(result) or (positive and result <= 0):
         return None  # NaN, and a focal length of 0, mean "unknown" in EXIF
     return result
 
 
 def _xmp_fields(xmp: bytes) -> dict[str, float | None]:
+    """DJI's attitude and height; a value that is not a finite number (``"e"``, ``"1e999"``) counts as absent."""
     text = xmp.decode("utf-8", "replace")
     found: dict[str, float | None] = {}
     for key, names in _XMP_FIELDS.items():
@@ -144,7 +146,8 @@ def _xmp_fields(xmp: bytes) -> dict[str, float | None]:
             match = re.search(rf'drone-dji:{name}\s*=\s*"([-+0-9.eE]+)"', text) or re.search(
                 rf"<drone-dji:{name}>([-+0-9.eE]+)<", text
             )
-            if match:
-                found[key] = float(match.group(1))
+            value = _as_float(match.group(1), positive=False) if match else None
+            if value is not None:
+                found[key] = value
                 break
     return found

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, File, Form, UploadFile
 
 from api import calibration_service as service
-from api.deps import DbDep, QueueDep, SettingsDep
+from api.deps import DbDep, JobId, QueueDep, SettingsDep
 from api.models import JobOut, JobResultOut, MarksUpdate, MeasureRequest
 from api.photo_jobs import parse_options
 from api.stereo_service import measure_with_rig
@@ -31,13 +31,13 @@ async def create_calibration(
 
 
 @router.get("/calibrations/{job_id}", response_model=JobResultOut)
-def get_calibration(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
+def get_calibration(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobResultOut:
     """The job and, once solved, the camera JSON, RMS, per-point reprojection errors and parameter sigmas."""
     return service.get_calibration(db, settings, job_id, JobKind.calibration)
 
 
 @router.put("/calibrations/{job_id}/markers", status_code=202, response_model=JobOut)
-def replace_markers(job_id: int, body: MarksUpdate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
+def replace_markers(job_id: JobId, body: MarksUpdate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
     """Replace or remove the marks of some photos, then solve again."""
     return service.replace_markers(db, settings, queue, job_id, body)
 
@@ -58,12 +58,12 @@ async def create_stereo_rig(
 
 
 @router.get("/stereo-rigs/{job_id}", response_model=JobResultOut)
-def get_stereo_rig(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
+def get_stereo_rig(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobResultOut:
     return service.get_calibration(db, settings, job_id, JobKind.stereo_calibration)
 
 
 @router.post("/stereo-rigs/{job_id}/measure")
-def measure(job_id: int, body: MeasureRequest, db: DbDep, settings: SettingsDep) -> dict:
+def measure(job_id: JobId, body: MeasureRequest, db: DbDep, settings: SettingsDep) -> dict:
     """3D points (left camera frame, mm) of pixel pairs by the midpoint of the two rays, their distances
     and uncertainties."""
     return measure_with_rig(db, settings, job_id, body)

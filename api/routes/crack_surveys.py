@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, File, Form, UploadFile
 
 from api import crack_survey_service as service
-from api.deps import DbDep, QueueDep, SettingsDep
+from api.deps import DbDep, JobId, QueueDep, SettingsDep
 from api.models import JobOut, JobResultOut
 from api.photo_jobs import parse_options
 
@@ -34,6 +34,6 @@ async def create_crack_survey(
 
 
 @router.get("/crack-surveys/{job_id}", response_model=JobResultOut)
-def get_crack_survey(job_id: int, db: DbDep, settings: SettingsDep) -> JobResultOut:
+def get_crack_survey(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobResultOut:
     """The job and, once finished, ``report.json``: control point residuals, cracks per stage, comparisons."""
     return service.get_crack_survey(db, settings, job_id)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, File, UploadFile
 from sqlalchemy import func, select
 
-from api.deps import DbDep, SettingsDep
+from api.deps import DbDep, FlightId, SettingsDep
 from api.errors import NotFoundError
 from api.gcp_service import MAX_GCP_BYTES, store_gcps
 from api.models import FlightCreate, FlightDetail, FlightOut, ImageOut, UploadResult
@@ -62,7 +62,7 @@ def list_flights(db: DbDep) -> list[FlightOut]:
 
 
 @router.get("/{flight_id}", response_model=FlightDetail)
-def get_flight(flight_id: int, db: DbDep) -> FlightDetail:
+def get_flight(flight_id: FlightId, db: DbDep) -> FlightDetail:
     with db.session() as s:
         flight = s.get(Flight, flight_id)
         if flight is None:
@@ -73,7 +73,7 @@ def get_flight(flight_id: int, db: DbDep) -> FlightDetail:
 
 @router.post("/{flight_id}/images", status_code=201, response_model=UploadResult)
 async def upload_images(
-    flight_id: int,
+    flight_id: FlightId,
     db: DbDep,
     settings: SettingsDep,
     files: list[UploadFile] = File(..., description="one or more photos"),
@@ -85,7 +85,7 @@ async def upload_images(
 
 @router.put("/{flight_id}/gcps")
 async def upload_gcps(
-    flight_id: int,
+    flight_id: FlightId,
     db: DbDep,
     settings: SettingsDep,
     file: UploadFile = File(..., description="gcp_list.txt (ODM) or ground_control_points.json (OpenSfM)"),

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse, StreamingResponse
 
 from api import job_service
-from api.deps import DbDep, QueueDep, SettingsDep
+from api.deps import DbDep, FlightFilter, JobId, QueueDep, SettingsDep
 from api.errors import NotFoundError
 from api.models import JobCreate, JobOut, OutputOut, OutputsOut
 from core.kinds import JobStatus
@@ -33,28 +33,28 @@ def create_job(body: JobCreate, db: DbDep, settings: SettingsDep, queue: QueueDe
 
 
 @router.get("", response_model=list[JobOut])
-def list_jobs(db: DbDep, flight_id: int | None = None) -> list[JobOut]:
+def list_jobs(db: DbDep, flight_id: FlightFilter = None) -> list[JobOut]:
     return job_service.list_jobs(db, flight_id)
 
 
 @router.get("/{job_id}", response_model=JobOut)
-def get_job(job_id: int, db: DbDep) -> JobOut:
+def get_job(job_id: JobId, db: DbDep) -> JobOut:
     return job_service.get_job(db, job_id)
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut)
-def cancel_job(job_id: int, db: DbDep) -> JobOut:
+def cancel_job(job_id: JobId, db: DbDep) -> JobOut:
     return job_service.cancel_job(db, job_id)
 
 
 @router.post("/{job_id}/retry", status_code=202, response_model=JobOut)
-def retry_job(job_id: int, db: DbDep, queue: QueueDep) -> JobOut:
+def retry_job(job_id: JobId, db: DbDep, queue: QueueDep) -> JobOut:
     """Run a failed or cancelled job again from the stage where it stopped."""
     return job_service.retry_job(db, queue, job_id)
 
 
 @router.get("/{job_id}/events")
-async def job_events(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> StreamingResponse:
+async def job_events(job_id: JobId, request: Request, db: DbDep, settings: SettingsDep) -> StreamingResponse:
     """Server-Sent Events: ``progress`` with the job JSON at every change, then ``end`` when it finishes."""
     job_service.get_job(db, job_id)  # 404 before the stream starts
 
@@ -78,7 +78,7 @@ async def job_events(job_id: int, request: Request, db: DbDep, settings: Setting
 
 
 @router.get("/{job_id}/outputs", response_model=OutputsOut)
-def list_outputs(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> OutputsOut:
+def list_outputs(job_id: JobId, request: Request, db: DbDep, settings: SettingsDep) -> OutputsOut:
     job_service.get_job(db, job_id)
     outputs = job_workspace(settings.data_dir, job_id).outputs()
     return OutputsOut(
@@ -94,7 +94,7 @@ def list_outputs(job_id: int, request: Request, db: DbDep, settings: SettingsDep
 
 
 @router.get("/{job_id}/outputs/{name}", name="download_output")
-def download_output(job_id: int, name: str, db: DbDep, settings: SettingsDep) -> FileResponse:
+def download_output(job_id: JobId, name: str, db: DbDep, settings: SettingsDep) -> FileResponse:
     """Download one output by its public name (never a path: only names listed by /outputs resolve)."""
     job_service.get_job(db, job_id)
     path = job_workspace(settings.data_dir, job_id).outputs().get(name)

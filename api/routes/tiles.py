@@ -27,7 +27,7 @@ from rio_tiler.io import ImageReader, Reader
 from rio_tiler.models import ImageData
 
 from api import job_service
-from api.deps import DbDep, SettingsDep
+from api.deps import DbDep, JobId, SettingsDep, TileIndex
 from api.errors import ConflictError, NotFoundError
 from api.photo_jobs import job_of_kind
 from core.kinds import JobKind
@@ -66,20 +66,22 @@ def _load_step_cog(db: Any, settings: Any, job_id: int, step: int) -> Path:
 
 
 @router.get("/{job_id}/{z}/{x}/{y}.png", responses=PNG)
-def tile(job_id: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
+def tile(job_id: JobId, z: TileIndex, x: TileIndex, y: TileIndex, db: DbDep, settings: SettingsDep) -> Response:
     """A 256 px PNG tile, transparent outside the mosaic; 404 outside the bounds its TileJSON gives."""
     return _tile_response(_mosaic_cog(db, settings, job_id), z, x, y, f"the mosaic of job {job_id}")
 
 
 @router.get("/{job_id}/tilejson.json")
-def tilejson(job_id: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+def tilejson(job_id: JobId, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
     """TileJSON 2.2.0 of the job's mosaic; ``georeferenced: false`` means a local pixel grid."""
     path = _mosaic_cog(db, settings, job_id)
     return _tilejson(path, request.url_for("tile", job_id=job_id, z=0, x=0, y=0), f"job {job_id} mosaic")
 
 
 @router.get("/{job_id}/load-steps/{step}/{z}/{x}/{y}.png", responses=PNG)
-def load_step_tile(job_id: int, step: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
+def load_step_tile(
+    job_id: JobId, step: TileIndex, z: TileIndex, x: TileIndex, y: TileIndex, db: DbDep, settings: SettingsDep
+) -> Response:
     """A 256 px PNG tile of load step ``step`` (0-based, the order of ``options.stages``) of a crack survey,
     rectified onto the specimen."""
     path = _load_step_cog(db, settings, job_id, step)
@@ -87,7 +89,9 @@ def load_step_tile(job_id: int, step: int, z: int, x: int, y: int, db: DbDep, se
 
 
 @router.get("/{job_id}/load-steps/{step}/tilejson.json")
-def load_step_tilejson(job_id: int, step: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+def load_step_tilejson(
+    job_id: JobId, step: TileIndex, request: Request, db: DbDep, settings: SettingsDep
+) -> dict[str, Any]:
     """TileJSON 2.2.0 of one load step's rectified specimen, a local pixel grid (``georeferenced: false``):
     its pixel (col, row) spans [col, col + 1] x [row, row + 1] and is centred on the specimen point
     (X, Y) = (col, row) * mm_per_px, mm (``report.json``)."""
@@ -101,12 +105,16 @@ def load_step_tilejson(job_id: int, step: int, request: Request, db: DbDep, sett
 
 
 @router.get("/{job_id}/stages/{stage}/{z}/{x}/{y}.png", include_in_schema=False)
-def stage_tile(job_id: int, stage: int, z: int, x: int, y: int, db: DbDep, settings: SettingsDep) -> Response:
+def stage_tile(
+    job_id: JobId, stage: TileIndex, z: TileIndex, x: TileIndex, y: TileIndex, db: DbDep, settings: SettingsDep
+) -> Response:
     return load_step_tile(job_id, stage, z, x, y, db, settings)
 
 
 @router.get("/{job_id}/stages/{stage}/tilejson.json", include_in_schema=False)
-def stage_tilejson(job_id: int, stage: int, request: Request, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+def stage_tilejson(
+    job_id: JobId, stage: TileIndex, request: Request, db: DbDep, settings: SettingsDep
+) -> dict[str, Any]:
     return load_step_tilejson(job_id, stage, request, db, settings)
 
 

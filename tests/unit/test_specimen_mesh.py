@@ -109,6 +109,10 @@ def test_every_format_reads_the_same_triangles(name: str, make) -> None:
     assert np.isclose(mesh.areas().sum(), 100.0 + 0.5 * 10 * np.hypot(2, 5))
 
 
+PLY_HEAD = b"ply\nformat ascii 1.0\nelement vertex 3\n"
+PLY_FACE = b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+
+
 @pytest.mark.parametrize(
     ("name", "data", "fragment"),
     [
@@ -119,6 +123,10 @@ def test_every_format_reads_the_same_triangles(name: str, make) -> None:
         ("m.obj", b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "not finite"),
         ("m.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n", "'vertex' and 'face'"),
         ("m.ply", b"PK\x03\x04zip", "no PLY header"),
+        ("m.ply", PLY_HEAD + b"property quad x\n" + PLY_FACE, "header line 4: unknown PLY property type 'quad'"),
+        ("m.ply", PLY_HEAD + b"property float y\nproperty float z\n" + PLY_FACE, "has no x property"),
+        ("m.ply", PLY_HEAD + b"property float x y z\n" + PLY_FACE, "header line 4: expected 'property <type>"),
+        ("m.ply", b"ply\nformat ascii 1.0\nelement vertex -3\n" + PLY_FACE, "header line 3: expected 'element"),
         ("m.stl", b"\x00" * 84 + b"\x01" * 7, "neither a binary STL"),
         ("m.step", b"ISO-10303-21;", "unknown model format"),
     ],

@@ -117,6 +117,9 @@ def test_odm_gcp_list_in_lonlat_and_proj_strings() -> None:
         ("EPSG:32632\n1 2 3 4 5 a.jpg p\n1 2 3 6 7 a.jpg p\n", 3),  # observed twice in one image
         ("EPSG:32632\n1 2 3 4 5 a.jpg p\n1 2 4 6 7 b.jpg p\n", 3),  # same name, other coordinates
         ("EPSG:32632\n1 2 3 -4 5 a.jpg\n", 2),
+        ("EPSG:4326\n9.0 45.0 1 4 5 a.jpg\n9.0 95.0 1 4 5 a.jpg\n", 3),  # latitude 95
+        ("EPSG:4326\n500 45.0 1 4 5 a.jpg\n", 2),  # longitude 500
+        ("EPSG:32615\n1e300 1e300 1 4 5 a.jpg\n", 2),  # no place in the job's UTM zone
     ],
 )
 def test_odm_gcp_list_bad_input_names_the_line(text: str, line: int) -> None:
@@ -162,6 +165,10 @@ def test_opensfm_gcps_denormalise_projections_like_opensfm() -> None:
         ('{"points": [{"observations": []}]}', r"points\[0\]"),
         ('{"points": [{"id": "a", "position": {"latitude": "x", "longitude": 1, "altitude": 2}}]}', "latitude"),
         ('{"points": [{"id": "a", "observations": [{"shot_id": "a.jpg", "projection": [1]}]}]}', "observations"),
+        ('{"points": [{"id": "a", "observations": 3}]}', r"points\[0\]\.observations: expected a list"),
+        ('{"points": [{"id": "a", "observations": {"a.jpg": [1, 2]}}]}', r"points\[0\]\.observations"),
+        ('{"points": [{"id": "a", "position": {"latitude": 95, "longitude": 1, "altitude": 2}}]}', "latitude 95"),
+        ('{"points": [{"id": "a", "position": {"latitude": 5, "longitude": -500, "altitude": 2}}]}', "longitude -500"),
     ],
 )
 def test_opensfm_gcps_bad_input(text: str, where: str) -> None:

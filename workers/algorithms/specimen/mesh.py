@@ -88,7 +88,7 @@ def read_mesh(data: bytes, name: str) -> Mesh:
         vertices, triangles = readers[suffix](data)
     except MeshFormatError as exc:
         raise MeshFormatError(f"{name}: {exc}") from None
-    except (ValueError, IndexError, struct.error, UnicodeDecodeError) as exc:
+    except (ValueError, IndexError, KeyError, TypeError, OverflowError, struct.error) as exc:  # UnicodeDecodeError too
         raise MeshFormatError(f"{name}: not a valid {suffix[1:].upper()} file ({exc})") from None
     return _checked(name, vertices, triangles)
 
@@ -202,25 +202,45 @@ def _read_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 
 def _ply_header(lines: list[str]) -> tuple[str, list[_PlyElement]]:
     fmt, elements = "", []
-    for line in lines[1:]:
+    for number, line in enumerate(lines[1:], start=2):
         parts = line.split()
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
-        if parts[0] == "format":
+        if parts[0] == "format" and len(parts) >= 2:
             fmt = parts[1]
         elif parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise MeshFormatError(f"header line {number}: expected 'element <name> <count>'")
             elements.append(_PlyElement(parts[1], int(parts[2]), []))
         elif parts[0] == "property" and elements:
-            if parts[1] == "list":
-                elements[-1].properties.append((parts[4], _PLY_TYPES[parts[3]], _PLY_TYPES[parts[2]]))
-            else:
-                elements[-1].properties.append((parts[2], _PLY_TYPES[parts[1]], None))
+            elements[-1].properties.append(_ply_property(number, parts))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise MeshFormatError(f"unknown PLY format {fmt!r}")
     names = [e.name for e in elements]
     if "vertex" not in names or "face" not in names:
         raise MeshFormatError("a PLY model needs 'vertex' and 'face' elements")
+    vertex = elements[names.index("vertex")]
+    scalars = {name for name, _, count in vertex.properties if count is None}
+    if missing := [axis for axis in "xyz" if axis not in scalars]:
+        raise MeshFormatError(f"the PLY 'vertex' element has no {', '.join(missing)} property; it needs x, y and z")
     return fmt, elements
+
+
+def _ply_property(number: int, parts: list[str]) -> tuple[str, str, str | None]:
+    """(name, value type, list count type or None) of a ``property`` header line."""
+    is_list = parts[1:2] == ["list"]
+    if len(parts) != (5 if is_list else 3):
+        raise MeshFormatError(
+            f"header line {number}: expected 'property <type> <name>' or 'property list <type> <type> <name>'"
+        )
+    types = parts[2:4] if is_list else parts[1:2]
+    if unknown := [t for t in types if t not in _PLY_TYPES]:
+        raise MeshFormatError(
+            f"header line {number}: unknown PLY property type {unknown[0]!r}; known: {', '.join(_PLY_TYPES)}"
+        )
+    if is_list:
+        return parts[4], _PLY_TYPES[parts[3]], _PLY_TYPES[parts[2]]
+    return parts[2], _PLY_TYPES[parts[1]], None
 
 
 def _ply_ascii(tokens: list[str], elements: list[_PlyElement]) -> tuple[np.ndarray, np.ndarray]:
