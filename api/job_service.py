@@ -128,6 +128,16 @@ def get_job(db: Database, job_id: int) -> JobOut:
         return job_out(job)
 
 
+def job_with_warnings(db: Database, settings: Settings, job_id: int) -> JobOut:
+    """The job, with the warnings of its report when it has succeeded and has one."""
+    job = get_job(db, job_id)
+    ws = job_workspace(settings.data_dir, job_id)
+    if job.status == JobStatus.succeeded and ws.has_report():
+        warnings = ws.load_report().get("warnings", [])
+        job = job.model_copy(update={"warnings": [w for w in warnings if isinstance(w, str)]})
+    return job
+
+
 def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:
     with db.session() as s:
         query = select(Job).order_by(Job.id.desc())

@@ -86,6 +86,9 @@ class JobOut(BaseModel):
     options: dict[str, Any]
     created_at: datetime
     updated_at: datetime
+    # what a user must know before trusting a finished job's result (frames left out or placed again, cameras
+    # far from their GPS), from its report; filled by GET /api/jobs/{id}, so a client can refuse the result
+    warnings: list[str] = []
 
 
 class OutputOut(BaseModel):

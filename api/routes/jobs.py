@@ -38,8 +38,9 @@ def list_jobs(db: DbDep, flight_id: FlightFilter = None) -> list[JobOut]:
 
 
 @router.get("/{job_id}", response_model=JobOut)
-def get_job(job_id: JobId, db: DbDep) -> JobOut:
-    return job_service.get_job(db, job_id)
+def get_job(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobOut:
+    """The job's status, progress and, once it has succeeded, the warnings of its report."""
+    return job_service.job_with_warnings(db, settings, job_id)
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut)

@@ -7,11 +7,13 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from core.db import Database
+from core.db import Database, Job
+from core.kinds import JobStatus
 from tests.conftest import RecordingQueue
 from tests.scenes import make_flight
 from workers.pipeline import stage_names
 from workers.tasks import execute_stage
+from workers.workspace import job_workspace
 
 
 @pytest.fixture(scope="module")
@@ -177,3 +179,16 @@ def test_docs_render_offline(client: TestClient) -> None:
     assert client.get("/openapi.json").json()["info"]["title"] == "Fotoskhema"
     assert client.get("/api/health").json()["status"] == "ok"
     assert client.get("/api/config").json() == {"basemap_url": ""}
+
+
+def test_a_succeeded_job_carries_its_report_warnings(client: TestClient, api_settings, frames: list[Path]) -> None:
+    """A client can refuse a result the report warns about without downloading the report."""
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames), "kind": "mosaic"}).json()
+    ws = job_workspace(api_settings.data_dir, job["id"])
+    warning = "1 of 3 frames could not be placed and are left out: b.jpg"
+    ws.save_report({"kind": "mosaic", "warnings": [warning]})
+    assert client.get(f"/api/jobs/{job['id']}").json()["warnings"] == []  # not finished: no verdict yet
+    db = Database(api_settings.resolved_database_url())
+    with db.session() as s:
+        s.get(Job, job["id"]).status = JobStatus.succeeded
+    assert client.get(f"/api/jobs/{job['id']}").json()["warnings"] == [warning]
