@@ -17,6 +17,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import rasterio
 from PIL import Image
 from pyproj import Transformer
 
@@ -184,3 +185,27 @@ def _render_frames(flight: TerrainFlight, conventions: list[str], gps_noise: np.
         Image.fromarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB)).save(
             flight.paths[i], "JPEG", quality=93, exif=exif, **extra
         )
+
+
+def level_ground_colour_error(flight: TerrainFlight, mosaic: Path, z0: float) -> tuple[float, int]:
+    """Mean colour difference (levels) between an orthomosaic and the texture at each pixel's map position,
+    where the terrain is within 0.15 m of the ortho plane ``z0`` (elsewhere relief displaces the ground), and
+    how many such pixels there are, away from the mosaic's edges."""
+    with rasterio.open(mosaic) as src:
+        assert src.crs.to_epsg() == flight.epsg
+        rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
+        mask = src.dataset_mask() > 0
+        rows, cols = np.mgrid[0 : src.height, 0 : src.width]
+        east, north = rasterio.transform.xy(src.transform, rows.ravel(), cols.ravel())
+    x = np.asarray(east) - flight.origin_utm[0]
+    y = np.asarray(north) - flight.origin_utm[1]
+    col, row = flight.texture_px(x, y)
+    expected = cv2.remap(
+        flight.texture,
+        col.reshape(rows.shape).astype(np.float32),
+        row.reshape(rows.shape).astype(np.float32),
+        cv2.INTER_LINEAR,
+    )[..., ::-1].astype(np.float32)
+    level = (np.abs(flight.height(x, y) - z0) < 0.15).reshape(rows.shape)
+    inner = (cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & level
+    return float(np.abs(rgb - expected)[inner].mean()), int(inner.sum())

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
-import rasterio
 
 from tests.conftest import shared_data
-from tests.terrain_scenes import TerrainFlight, make_terrain_flight
+from tests.terrain_scenes import TerrainFlight, level_ground_colour_error, make_terrain_flight
 from workers.algorithms.geometry import Camera
 from workers.pipeline import process_directory
 from workers.workspace import JobWorkspace
@@ -63,26 +61,8 @@ def test_true_ground_reprojects_where_the_photos_show_it(ortho) -> None:
 def test_orthomosaic_shows_the_ground_at_its_map_position(ortho) -> None:
     """Where the terrain is at the ortho plane's height, every mosaic pixel shows the texture of that spot."""
     flight, report, ws = ortho
-    z0 = ws.load_alignment().ground_z
-    with rasterio.open(ws.mosaic_path()) as src:
-        assert src.crs.to_epsg() == flight.epsg
-        rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
-        mask = src.dataset_mask() > 0
-        rows, cols = np.mgrid[0 : src.height, 0 : src.width]
-        east, north = rasterio.transform.xy(src.transform, rows.ravel(), cols.ravel())
-    x = np.asarray(east) - flight.origin_utm[0]
-    y = np.asarray(north) - flight.origin_utm[1]
-    col, row = flight.texture_px(x, y)
-    expected = cv2.remap(
-        flight.texture,
-        col.reshape(rows.shape).astype(np.float32),
-        row.reshape(rows.shape).astype(np.float32),
-        cv2.INTER_LINEAR,
-    )[..., ::-1].astype(np.float32)
-    level = (np.abs(flight.height(x, y) - z0) < 0.15).reshape(rows.shape)
-    inner = (cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & level
-    assert inner.sum() > 2000
-    diff = np.abs(rgb - expected)[inner].mean()
+    diff, pixels = level_ground_colour_error(flight, ws.mosaic_path(), ws.load_alignment().ground_z)
+    assert pixels > 2000
     assert diff < 8.0, f"mean colour difference {diff:.1f} levels where the ground is at the ortho plane"
     assert report["mode"] == "ortho" and report["georeferenced"]
 
