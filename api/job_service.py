@@ -129,13 +129,15 @@ def get_job(db: Database, job_id: int) -> JobOut:
 
 
 def job_with_warnings(db: Database, settings: Settings, job_id: int) -> JobOut:
-    """The job, with the warnings of its report when it has succeeded and has one."""
+    """The job, with the warnings of its report once it has succeeded (a report that cannot be read has none)."""
     job = get_job(db, job_id)
-    ws = job_workspace(settings.data_dir, job_id)
-    if job.status == JobStatus.succeeded and ws.has_report():
-        warnings = ws.load_report().get("warnings", [])
-        job = job.model_copy(update={"warnings": [w for w in warnings if isinstance(w, str)]})
-    return job
+    if job.status != JobStatus.succeeded:
+        return job
+    try:
+        warnings = job_workspace(settings.data_dir, job_id).load_report().get("warnings", [])
+    except (OSError, ValueError, AttributeError):  # no report (calibrations), or a damaged one
+        warnings = []
+    return job.model_copy(update={"warnings": [w for w in warnings if isinstance(w, str)]})
 
 
 def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:

@@ -87,8 +87,9 @@ class JobOut(BaseModel):
     created_at: datetime
     updated_at: datetime
     # what a user must know before trusting a finished job's result (frames left out or placed again, cameras
-    # far from their GPS), from its report; filled by GET /api/jobs/{id}, so a client can refuse the result
-    warnings: list[str] = []
+    # far from their GPS), from its report, so a client can refuse the result: a list (maybe empty) from
+    # GET /api/jobs/{id} once the job has succeeded, null where it was not looked up (lists, other states)
+    warnings: list[str] | None = None
 
 
 class OutputOut(BaseModel):

@@ -104,20 +104,7 @@ def make_sfm_scene(
     xy = rng.uniform(-45.0, 45.0, (n_points, 2))
     points = np.column_stack([xy, ground_height(xy[:, 0], xy[:, 1])])
     rotations, centres = _camera_rig(n_ring, n_nadir, rng)
-    features, feature_point = [], []
-    for R, C in zip(rotations, centres, strict=True):
-        cam = (points - C) @ R.T
-        px = TRUE_CAMERA.project(cam)
-        seen = (cam[:, 2] > 1.0) & np.all((px > 5) & (px < [TRUE_CAMERA.width - 6, TRUE_CAMERA.height - 6]), axis=1)
-        ids = np.flatnonzero(seen & (rng.random(n_points) < 0.8))
-        ids = rng.permutation(ids)
-        features.append(px[ids] + rng.normal(0.0, noise_px / np.sqrt(2.0), (len(ids), 2)))
-        feature_point.append(ids.astype(np.int64))
-    matches, wrong = _matches(rotations, feature_point, outlier_fraction, rng)
-    box = np.vstack([points, centres])
-    size = float(np.linalg.norm(box.max(axis=0) - box.min(axis=0)))
-    attitude = np.array([attitude_of(R) for R in rotations])
-    return SfmScene(TRUE_CAMERA, rotations, centres, points, features, feature_point, matches, wrong, attitude, size)
+    return _observe(rotations, centres, points, noise_px, outlier_fraction, rng)
 
 
 def _camera_rig(n_ring: int, n_nadir: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -144,8 +144,9 @@ def _nadir_rotation(yaw_deg: float, tilt_deg: np.ndarray) -> np.ndarray:
 
 def _xmp(R: np.ndarray, convention: str) -> bytes:
     """A DJI XMP packet with the gimbal yaw / pitch / roll of world -> camera rotation ``R`` in ``convention``."""
-    # "yaw+180": the metadata describes the camera turned half a turn about its optical axis
-    yaw, pitch, roll = dji_attitude(np.diag([-1.0, -1.0, 1.0]) @ R if convention == "yaw+180" else R)
+    yaw, pitch, roll = dji_attitude(R)
+    if convention == "yaw+180":  # the metadata heading is the camera's turned by 180 degrees
+        yaw = (yaw + 360.0) % 360.0 - 180.0
     return (
         '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
         '<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '

@@ -26,6 +26,7 @@ import {
   list,
   onAbort,
   statusBadge,
+  warningAlerts,
 } from "./lib.js";
 import { renderJobPage, showLoadError } from "./job.js";
 import { JobKind } from "./kinds.js";
@@ -115,8 +116,7 @@ async function showSurvey(view, jobId, card, residualCard) {
     // replaceChildren would print a null
     ...(plane ? [h("p", { class: "muted small", "data-testid": "mesh-note" }, `The mesh model is shown rectified onto ${plane.how}; `
       + "crack lengths and widths are measured along its surface, so a crack on a curve is longer than it looks here.")] : []),
-    ...(Array.isArray(report.warnings) ? report.warnings : []).filter((text) => typeof text === "string")
-      .map((text) => h("p", { class: "alert warning", role: "status", "data-testid": "survey-warning" }, text)),
+    ...warningAlerts(report.warnings, "survey-warning"),
     h("div", { class: "result-grid" }, mapNode, h("div", { class: "map-controls" }, stepPanel, legend)),
     tableBox,
     h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(steps))),

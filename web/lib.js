@@ -87,6 +87,12 @@ export function formatDate(iso) {
 }
 
 /** The objects of an array from a report (anything else in it, or a missing array: none). */
+/** The report's warnings (strings only) as alerts, each with `data-testid` `testid`. */
+export function warningAlerts(items, testid) {
+  return (Array.isArray(items) ? items : []).filter((text) => typeof text === "string")
+    .map((text) => h("p", { class: "alert warning", role: "status", "data-testid": testid }, text));
+}
+
 export function list(value) {
   return Array.isArray(value) ? value.filter((item) => item && typeof item === "object") : [];
 }

@@ -17,6 +17,7 @@ import {
   h,
   humanize,
   list,
+  warningAlerts,
 } from "./lib.js";
 
 const MODES = {
@@ -52,7 +53,7 @@ function qualityBody(report) {
   const rejected = list(report.frames_rejected);
   const known = Array.isArray(report.frames_used) || Array.isArray(report.frames_rejected);
   const nodes = [
-    ...warnings(report.warnings),
+    ...warningAlerts(report.warnings, "quality-warning"), // frames left out or placed again, GPS misfits
     factList([
       ["Mode", MODES[report.mode] || report.mode || "–", { "data-testid": "quality-mode-text" }],
       ["Frames used", known ? `${used.length} of ${used.length + rejected.length}` : "–", { "data-testid": "frames-used" }],
@@ -65,12 +66,6 @@ function qualityBody(report) {
   ];
   if (report.triangulation && typeof report.triangulation === "object") nodes.push(triangulationSection(report.triangulation));
   return nodes;
-}
-
-/** What a user must know before trusting the map (frames left out or placed again, GPS misfits), as alerts. */
-function warnings(items) {
-  return (Array.isArray(items) ? items : []).filter((text) => typeof text === "string")
-    .map((text) => h("p", { class: "alert warning", role: "status", "data-testid": "quality-warning" }, text));
 }
 
 /** "0.42 px (1.31 px at full resolution)": the working-scale RMS and the one in the photos' pixels. */

@@ -368,43 +368,57 @@ class JobWorkspace:
 
     def stage_outputs_present(self, stage: str) -> bool:
         """Whether every file pipeline stage ``stage`` writes is still there: a finished stage whose files were
-        lost (a cleaned scratch disk, a restored backup) runs again instead of being skipped."""
-        return all(path.exists() for path in self._stage_outputs(stage))
+        lost (a cleaned scratch disk, a restored backup), or whose inputs naming them cannot be read, runs again
+        instead of being skipped."""
+        try:
+            return all(path.exists() for path in self._stage_outputs(stage))
+        except (OSError, ValueError, KeyError, TypeError):  # a lost or corrupt frames.json, config, ...
+            return False
 
     def _stage_outputs(self, stage: str) -> list[Path]:
-        """The files ``stage`` writes (those of its inputs that name them, such as frames.json, must exist)."""
+        """The files ``stage`` writes; per-frame, per-pair and per-load-step files as the artifacts that list
+        those frames, pairs and load steps say."""
         r = self.root
-        frames = [f.index for f in self.load_frames()] if (r / "frames.json").exists() else []
-        steps = range(len(self.load_config().get("stages", []))) if self.has_config() else range(0)
-        ortho = (
-            [self._ortho_image_file(k) for k in self.load_alignment().homographies]
-            if (r / "alignment.json").exists()
-            else []
-        )
+
+        def frames() -> list[int]:
+            return [f.index for f in self.load_frames()]
+
+        def steps() -> range:
+            return range(len(self.load_config().get("stages", [])))
+
         outputs = {
-            "load_images": [r / "frames.json", *(self._working_image_file(k) for k in frames)],
-            "detect_features": [r / "frames.json", *(self._features_file(k) for k in frames)],
-            "match_features": [r / "pairs.json"],
-            "align_frames": [r / "alignment.json"],
-            "georeference": [r / "georef.json"],
-            "adjust_bundle": [r / "cameras.json"],
-            "orthorectify_frames": [r / "alignment.json", r / "georef.json", *ortho],
-            "compose_mosaic": [r / "coverage.json", self.mosaic_path()],
-            "write_report": [r / "report.json"],
-            "detect_corners": [r / "corners.json"],
-            "calibrate_camera": [r / "calibration.json"],
-            "fit_plumb_line": [r / "calibration.json"],
-            "calibrate_stereo": [r / "calibration.json"],
-            "orient_camera": [r / "orientation.json"],
-            "rectify_specimen": [self._surface_file(), *(self._rectified_file(s) for s in steps)],
-            "detect_cracks": [self._crack_mask_file(s) for s in steps],
-            "measure_cracks": [r / f"cracks/stage_{s:02d}.json" for s in steps],
-            "compare_stages": [r / "comparison.json"],
-            "write_crack_report": [r / "report.json", r / "cracks.csv", *(self.load_step_cog_path(s) for s in steps)],
+            "load_images": lambda: [r / "frames.json", *(self._working_image_file(k) for k in frames())],
+            "detect_features": lambda: [self._features_file(k) for k in frames()],
+            "match_features": lambda: [
+                r / "pairs.json",
+                *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
+            ],
+            "align_frames": lambda: [r / "alignment.json"],
+            "georeference": lambda: [r / "georef.json"],
+            "adjust_bundle": lambda: [r / "cameras.json"],
+            "orthorectify_frames": lambda: [
+                r / "georef.json",
+                *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
+            ],
+            "compose_mosaic": lambda: [r / "coverage.json", self.mosaic_path()],
+            "write_report": lambda: [r / "report.json"],
+            "detect_corners": lambda: [r / "corners.json"],
+            "calibrate_camera": lambda: [r / "calibration.json"],
+            "fit_plumb_line": lambda: [r / "calibration.json"],
+            "calibrate_stereo": lambda: [r / "calibration.json"],
+            "orient_camera": lambda: [r / "orientation.json"],
+            "rectify_specimen": lambda: [self._surface_file(), *(self._rectified_file(s) for s in steps())],
+            "detect_cracks": lambda: [self._crack_mask_file(s) for s in steps()],
+            "measure_cracks": lambda: [r / f"cracks/stage_{s:02d}.json" for s in steps()],
+            "compare_stages": lambda: [r / "comparison.json"],
+            "write_crack_report": lambda: [
+                r / "report.json",
+                r / "cracks.csv",
+                *(self.load_step_cog_path(s) for s in steps()),
+            ],
         }
-        if stage == "match_features" and (r / "pairs.json").exists():
-            outputs[stage] += [self._matches_file(p.pair) for p in self.load_pairs() if p.accepted]
-        return outputs.get(stage, [])
+        listed = outputs.get(stage)
+        return listed() if listed is not None else []
 
     def forget_stage_report(self, stage: str) -> None:
         """Make pipeline stage ``stage`` run again on the next delivery (its report marks it done)."""

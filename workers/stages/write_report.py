@@ -68,13 +68,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
 
 def _warnings(report: dict[str, Any]) -> list[str]:
     """What a user must know before trusting the map, in words (the viewer's quality card shows them)."""
-    out = list(report.get("triangulation", {}).get("warnings", []))
-    rejected = report["frames_rejected"]
-    if rejected and not any("left out" in w for w in out):
-        names = ", ".join(r["name"] for r in rejected)
-        out.insert(
-            0, f"{len(rejected)} of {len(rejected) + len(report['frames_used'])} frames are not in the map: {names}"
-        )
+    triangulation = report.get("triangulation", {})
+    out = list(triangulation.get("warnings", []))
+    named = {entry["name"] for entry in triangulation.get("not_registered", [])}  # its warnings name these
+    rejected = [r["name"] for r in report["frames_rejected"] if r["name"] not in named]
+    if rejected:
+        total = len(report["frames_rejected"]) + len(report["frames_used"])
+        out.insert(0, f"{len(rejected)} of {total} frames are not in the map: {', '.join(rejected)}")
     return out
 
 

@@ -222,10 +222,11 @@ def to_world(state: ReconstructionState, camera: Camera, priors: Priors, options
     elif layout == "line" and len(frames) >= 2:
         fit = line_similarity(state.centres[frames], gps, state_rotations(state)[frames])
     else:
-        state.notes.append(
-            "GPS fixes and control points too few or too close together for their accuracy: "
-            "arbitrary frame, scale set by the initial baseline = 1"
-        )
+        if not state.world:  # a model seeded on GPS + attitude is in the world frame already
+            state.notes.append(
+                "GPS fixes and control points too few or too close together for their accuracy: "
+                "arbitrary frame, scale set by the initial baseline = 1"
+            )
         return "none"
     if tri:  # weigh GPS fixes and control points by their accuracy
         weights = np.r_[[priors.gps[f].sigma_h for f in frames], np.full(len(tri), options.gcp_sigma_m)]

@@ -158,8 +158,9 @@ def register_by_relative_pose(state: ReconstructionState, frame: int) -> str | N
 
 
 def frame_observations(state: ReconstructionState) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame (F,) int64: the observations the model keeps (active, of a triangulated track) and the tie
-    points its verified pairs offered (every track observation of the frame)."""
+    """Per frame (F,) int64: the observations the model keeps (active, of a triangulated track; for a frame not
+    registered, those it would keep) and the tie points its verified pairs offered (every track observation
+    of the frame)."""
     tr = state.tracks
     n = len(state.registered)
     kept = np.bincount(tr.frame[state.active & state.has_point[tr.track]], minlength=n)
@@ -174,3 +175,8 @@ def unregister(state: ReconstructionState, frames: Sequence[int]) -> None:
     state.active[np.isin(tr.frame, list(frames))] = True
     seen = state.active & state.registered[tr.frame] & state.has_point[tr.track]
     state.has_point &= np.bincount(tr.track[seen], minlength=len(state.has_point)) >= 2
+    if state.gauge is not None and not state.registered[list(state.gauge)].all():
+        # the frames that fix an arbitrary model's scale: the two registered ones with the most observations
+        kept = np.bincount(tr.frame[seen], minlength=len(state.registered))
+        best = [int(f) for f in np.argsort(-kept, kind="stable") if state.registered[f]][:2]
+        state.gauge = (best[0], best[1]) if len(best) == 2 else None

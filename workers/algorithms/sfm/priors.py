@@ -13,16 +13,14 @@ its tracks, as a frame without metadata would.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from workers.algorithms.geometry import vector_from_rotation
 from workers.algorithms.sfm.datum import Attitude, GpsFix, rotation_from_attitude
 
-# A half turn about the optical axis: the image top facing the other way.
-HALF_TURN = np.diag([-1.0, -1.0, 1.0])
-CONVENTIONS = ("yaw", "yaw+180")  # what the image top faces: the metadata yaw, or the opposite heading
+CONVENTIONS = ("yaw", "yaw+180")  # the camera's heading: the metadata yaw, or the opposite one
 MAX_ROTATION_DEG = 10.0  # pair rotation from the priors vs from the essential matrix
 MAX_BASELINE_DEG = 25.0  # baseline direction from GPS vs from the essential matrix
 MIN_AGREEMENT = 0.5  # share of a frame's pairs that must agree with its prior
@@ -48,9 +46,9 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 
 def candidate_rotations(attitude: Attitude) -> tuple[np.ndarray, np.ndarray]:
-    """World -> camera rotation of an attitude read in each of ``CONVENTIONS``."""
-    R = rotation_from_attitude(attitude)
-    return R, HALF_TURN @ R
+    """World -> camera rotation of an attitude read in each of ``CONVENTIONS``: as written, and with the heading
+    turned by 180 degrees (for a nadir frame: the image top facing the other way)."""
+    return rotation_from_attitude(attitude), rotation_from_attitude(replace(attitude, yaw=attitude.yaw + 180.0))
 
 
 def check_attitude_priors(
@@ -72,8 +70,11 @@ def check_attitude_priors(
     -------
     PriorCheck. A frame is kept when at least ``MIN_AGREEMENT`` of its pairs with other judged frames agree
     (rotation within ``MAX_ROTATION_DEG``, baseline within ``MAX_BASELINE_DEG``) with its and its neighbour's
-    chosen conventions; frames with no such pair keep their prior unchecked only if the flight has no pairs
-    at all to judge by.
+    chosen conventions. A frame in no such pair keeps its prior unchecked: it has no verified match to seed
+    anything, and the check after the adjustment (``reconstruction._recheck_frames``) leaves it out if it
+    never gains observations. Without a usable GPS baseline, "both frames turned" cannot be told from
+    "neither" by rotations alone; the flight then starts in the convention most pairs share, and the seed's
+    triangulation test falls back to an incremental start if that was wrong.
     """
     frames = sorted(attitude)
     candidates = {f: candidate_rotations(attitude[f]) for f in frames}

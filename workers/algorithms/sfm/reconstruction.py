@@ -241,10 +241,6 @@ def _seed_attitude(
             state.rvecs[f] = vector_from_rotation(R)
             state.centres[f], state.registered[f] = priors.gps[f].position, True
     state.attitude = {**check.conventions, **{f: f"not used: {why}" for f, why in check.rejected.items()}}
-    if check.rejected:
-        state.notes.append(f"attitude of {len(check.rejected)} frame(s) disagrees with their matches: placed by PnP")
-    if len(set(check.conventions.values())) > 1:
-        state.notes.append("the flight mixes heading conventions (image top at yaw, and at yaw + 180)")
     tr = state.tracks
     seen_twice = int((np.bincount(tr.track[state.registered[tr.frame]], minlength=len(state.has_point)) >= 2).sum())
     loose = 0.05 * max(camera.width, camera.height)  # metadata poses are a few degrees off
@@ -258,6 +254,10 @@ def _seed_attitude(
         state.rvecs[:], state.centres[:] = 0.0, 0.0
         state.attitude = {}
         return False
+    if check.rejected:
+        state.notes.append(f"attitude of {len(check.rejected)} frame(s) disagrees with their matches: placed by PnP")
+    if len(set(check.conventions.values())) > 1:
+        state.notes.append("the flight mixes heading conventions (the camera heading at yaw, and at yaw + 180)")
     state.world = True
     log.append(adjust_state(state, camera, options, priors, self_calibrate=False)[1])
     return True
@@ -324,20 +324,26 @@ def _pair_poses(state: ReconstructionState) -> dict[tuple[int, int], tuple[np.nd
     return out
 
 
-def _misfits(state: ReconstructionState, priors: Priors, options: ReconstructionOptions) -> dict[int, str]:
+def _misfits(state: ReconstructionState, priors: Priors, options: ReconstructionOptions) -> dict[int, tuple[str, str]]:
     """Registered frames the adjustment holds on too few observations (fewer than ``min_pnp_inliers``, or under
     a tenth of the tie points their pairs offered), or far from their GPS fix (beyond ``GPS_MISFIT_SIGMAS`` of
-    its horizontal accuracy), with why."""
+    its horizontal accuracy): frame -> (kind, why), kind "starved" or "gps"."""
     kept, offered = frame_observations(state)
     out = {}
     for f in map(int, np.flatnonzero(state.registered)):
         need = max(options.min_pnp_inliers, int(MIN_KEPT_SHARE * offered[f]))
         if kept[f] < need:
-            out[f] = f"the adjustment kept {kept[f]} of the {offered[f]} tie points its pairs offered (needs {need})"
+            out[f] = (
+                "starved",
+                f"the adjustment kept {kept[f]} of the {offered[f]} tie points its pairs offered (needs {need})",
+            )
         elif state.world and f in priors.gps:
             miss = float(np.linalg.norm((state.centres[f] - np.asarray(priors.gps[f].position))[:2]))
             if miss > GPS_MISFIT_SIGMAS * priors.gps[f].sigma_h:
-                out[f] = f"its camera lies {miss:.1f} m from its GPS position (accuracy {priors.gps[f].sigma_h:g} m)"
+                out[f] = (
+                    "gps",
+                    f"its camera lies {miss:.1f} m from its GPS position (accuracy {priors.gps[f].sigma_h:g} m)",
+                )
     return out
 
 
@@ -350,7 +356,7 @@ def _recheck_frames(
     with the reason); one that fits its matches but not its GPS stays, and the report says so."""
     tr = state.tracks
     for _ in range(2):
-        bad = _misfits(state, priors, options)
+        bad = {f: why for f, (_, why) in _misfits(state, priors, options).items()}
         if not bad:
             return camera
         unregister(state, list(bad))
@@ -369,7 +375,7 @@ def _recheck_frames(
             seen[tr.track[tr.frame == f]] = True
             triangulate_tracks(state, camera, seen, options.outlier_threshold_px, options.min_angle_deg)
         camera = _adjust_until_settled(state, camera, options, priors, log)
-    still = {f: why for f, why in _misfits(state, priors, options).items() if "tie points" in why}
+    still = {f: why for f, (kind, why) in _misfits(state, priors, options).items() if kind == "starved"}
     if still:
         unregister(state, list(still))
         state.reasons.update({f: f"{why}, also after it was placed again" for f, why in still.items()})
