@@ -29,6 +29,12 @@ pytestmark = pytest.mark.browser
 
 MM_PER_PX = 0.25
 STAGE_TILE = re.compile(r"/tiles/\d+/load-steps/(\d+)/\d+/\d+/\d+\.png$")
+SECOND_STEP_TILES_SETTLED_JS = """() => {
+  const tiles = [...document.querySelectorAll('[data-testid="map"] img.leaflet-tile')]
+    .filter((img) => img.src.includes('/tiles/'));
+  return tiles.length > 0 && tiles.every((img) => img.src.includes('/load-steps/1/') && img.complete
+    && getComputedStyle(img).opacity === '1');
+}"""
 # The scene's control points 0-3 are the specimen's corners: in a panel's X-Y plan view top left, top right,
 # bottom left, bottom right. A click just outside the mesh there picks that corner, a vertex of the mesh.
 PLAN_CORNERS = {0: (0.01, 0.01), 1: (0.99, 0.01), 2: (0.01, 0.99), 3: (0.99, 0.99)}
@@ -149,7 +155,8 @@ def test_two_stage_survey_made_and_read_in_the_browser(watched_page, live_servic
     expect(rows).to_have_count(len(scene.stages[1]))
     expect(page.locator('[data-testid="crack-row"][data-status="new"]')).to_have_count(added)
     expect(page.get_by_test_id("stage-changes")).to_contain_text(f"{added} new, 1 grown, 4 unchanged")
-    wait_for(page, MOSAIC_TILES_SETTLED_JS, 30_000, watch, "the second stage's tiles did not settle")
+    # the old step's tiles may look settled before the new TileJSON arrives: wait for the new step's own tiles
+    wait_for(page, SECOND_STEP_TILES_SETTLED_JS, 30_000, watch, "the second load step's tiles did not settle")
     assert _stage_tiles(watch, 1) and all(status == 200 for _, status, _ in _stage_tiles(watch, 1))
 
     new_row = page.locator('[data-testid="crack-row"][data-status="new"]').first
