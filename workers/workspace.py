@@ -58,6 +58,30 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"cannot serialise {type(value).__name__}")
 
 
+# The JSON and CSV artifacts of a job folder, named once for their readers, writers and ``_stage_outputs``
+_CONFIG = "config.json"
+_INPUTS = "inputs.json"
+_FRAMES = "frames.json"
+_PAIRS = "pairs.json"
+_ALIGNMENT = "alignment.json"
+_GEOREF = "georef.json"
+_COVERAGE = "coverage.json"
+_CORNERS = "corners.json"
+_CALIBRATION = "calibration.json"
+_CAMERAS = "cameras.json"
+_ORIENTATION = "orientation.json"
+_COMPARISON = "comparison.json"
+_REPORT = "report.json"
+_CRACKS_CSV = "cracks.csv"
+_MOSAIC = "mosaic.tif"
+_FOOTPRINTS = "footprints.geojson"
+_CRACKS_GEOJSON = "cracks.geojson"
+
+
+def _measured_cracks_name(step: int) -> str:
+    return f"cracks/stage_{step:02d}.json"
+
+
 class JobWorkspace:
     """The folder of one job: inputs, per-stage artifacts, reports and outputs.
 
@@ -77,20 +101,20 @@ class JobWorkspace:
 
     # -- inputs and configuration -------------------------------------------------------------
     def has_config(self) -> bool:
-        return (self.root / "config.json").exists()
+        return (self.root / _CONFIG).exists()
 
     def load_config(self) -> dict[str, Any]:
-        return dict(self._json("config.json"))
+        return dict(self._json(_CONFIG))
 
     def save_config(self, config: dict[str, Any]) -> None:
-        self._save_json("config.json", config)
+        self._save_json(_CONFIG, config)
 
     def load_inputs(self) -> list[dict[str, Any]]:
         """The frames of the job as the API (or ``fotoskhema process``) listed them."""
-        return list(self._json("inputs.json")["frames"])
+        return list(self._json(_INPUTS)["frames"])
 
     def save_inputs(self, frames: list[dict[str, Any]]) -> None:
-        self._save_json("inputs.json", {"frames": frames})
+        self._save_json(_INPUTS, {"frames": frames})
 
     def input_file(self, relative: str) -> Path:
         """Where the API stores an uploaded input of the job (photos of a photo-owning job), by relative name."""
@@ -111,12 +135,10 @@ class JobWorkspace:
     # -- load_images ----------------------------------------------------------------------------
     def load_frames(self) -> list[Frame]:
         """The decoded frames, in input order (``load_images``)."""
-        return [Frame.from_json(f) for f in self._json("frames.json")["frames"]]
+        return [Frame.from_json(f) for f in self._json(_FRAMES)["frames"]]
 
     def save_frames(self, frames: list[Frame], rejected: list[RejectedFrame]) -> None:
-        self._save_json(
-            "frames.json", {"frames": [f.to_json() for f in frames], "rejected": [r.to_json() for r in rejected]}
-        )
+        self._save_json(_FRAMES, {"frames": [f.to_json() for f in frames], "rejected": [r.to_json() for r in rejected]})
 
     def load_composed_frames(self) -> dict[int, Frame]:
         """Frames by index as ``compose_mosaic`` sees them: orthorectified frames may be cut to fewer rows."""
@@ -127,7 +149,7 @@ class JobWorkspace:
 
     def load_rejected_frames(self) -> list[RejectedFrame]:
         """The inputs ``load_images`` could not decode."""
-        return [RejectedFrame.from_json(r) for r in self._json("frames.json")["rejected"]]
+        return [RejectedFrame.from_json(r) for r in self._json(_FRAMES)["rejected"]]
 
     def _working_image_file(self, index: int) -> Path:
         return self.root / "work" / f"frame_{index:04d}.npy"
@@ -177,32 +199,32 @@ class JobWorkspace:
 
     def load_pairs(self) -> list[PairRecord]:
         """Every pair ``match_features`` tried: frames, matches, inliers, model, whether it was accepted."""
-        return [PairRecord.from_json(p) for p in self._json("pairs.json")["pairs"]]
+        return [PairRecord.from_json(p) for p in self._json(_PAIRS)["pairs"]]
 
     def save_pairs(self, pairs: list[PairRecord]) -> None:
-        self._save_json("pairs.json", {"pairs": [p.to_json() for p in pairs]})
+        self._save_json(_PAIRS, {"pairs": [p.to_json() for p in pairs]})
 
     # -- align_frames / orthorectify_frames, georeference, compose_mosaic -------------------------
     def load_alignment(self) -> Alignment:
         """Frame -> plane homographies, rejected frames and tie-point residuals (``align_frames``)."""
-        return Alignment.from_json(self._json("alignment.json"))
+        return Alignment.from_json(self._json(_ALIGNMENT))
 
     def save_alignment(self, alignment: Alignment) -> None:
-        self._save_json("alignment.json", alignment.to_json())
+        self._save_json(_ALIGNMENT, alignment.to_json())
 
     def load_georef(self) -> Georef:
         """The output grid: output pixel -> plane homography, size, CRS and pixel size (``georeference``)."""
-        return Georef.from_json(self._json("georef.json"))
+        return Georef.from_json(self._json(_GEOREF))
 
     def save_georef(self, georef: Georef) -> None:
-        self._save_json("georef.json", georef.to_json())
+        self._save_json(_GEOREF, georef.to_json())
 
     def load_coverage(self) -> Coverage:
         """The mosaic's outline in output pixels and the share of the grid it covers (``compose_mosaic``)."""
-        return Coverage.from_json(self._json("coverage.json"))
+        return Coverage.from_json(self._json(_COVERAGE))
 
     def save_coverage(self, coverage: Coverage) -> None:
-        self._save_json("coverage.json", coverage.to_json())
+        self._save_json(_COVERAGE, coverage.to_json())
 
     def mosaic_scratch_path(self) -> Path:
         """The GeoTIFF ``compose_mosaic`` writes block by block before it becomes the COG."""
@@ -211,28 +233,28 @@ class JobWorkspace:
     # -- calibration jobs -----------------------------------------------------------------------
     def load_corners(self) -> dict[str, Any]:
         """Chessboard corners found per photo (``detect_corners``)."""
-        return dict(self._json("corners.json"))
+        return dict(self._json(_CORNERS))
 
     def save_corners(self, corners: dict[str, Any]) -> None:
-        self._save_json("corners.json", corners)
+        self._save_json(_CORNERS, corners)
 
     def has_calibration(self) -> bool:
-        return (self.root / "calibration.json").exists()
+        return (self.root / _CALIBRATION).exists()
 
     def load_calibration(self) -> dict[str, Any]:
         """The result of a calibration or stereo job: camera/rig JSON, RMS, per-point errors."""
-        return dict(self._json("calibration.json"))
+        return dict(self._json(_CALIBRATION))
 
     def save_calibration(self, calibration: dict[str, Any]) -> None:
-        self._save_json("calibration.json", calibration)
+        self._save_json(_CALIBRATION, calibration)
 
     # -- adjust_bundle, orthorectify_frames ------------------------------------------------------
     def load_cameras(self) -> dict[str, Any]:
         """Adjusted cameras, poses and the triangulation report (``adjust_bundle``)."""
-        return dict(self._json("cameras.json"))
+        return dict(self._json(_CAMERAS))
 
     def save_cameras(self, cameras: dict[str, Any]) -> None:
-        self._save_json("cameras.json", cameras)
+        self._save_json(_CAMERAS, cameras)
 
     def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"
@@ -249,10 +271,10 @@ class JobWorkspace:
     # -- crack-survey jobs ------------------------------------------------------------------------
     def load_orientation(self) -> list[dict[str, Any]]:
         """Each photo's pose from its control points and their residuals (``orient_camera``)."""
-        return list(self._json("orientation.json")["photos"])
+        return list(self._json(_ORIENTATION)["photos"])
 
     def save_orientation(self, photos: list[dict[str, Any]]) -> None:
-        self._save_json("orientation.json", {"photos": photos})
+        self._save_json(_ORIENTATION, {"photos": photos})
 
     def specimen_model_file(self, name: str) -> Path:
         """The uploaded mesh of the specimen (see :func:`specimen_model_path`)."""
@@ -303,20 +325,18 @@ class JobWorkspace:
 
     def save_measured_cracks(self, step: int, cracks: list[Crack], summary: dict[str, Any]) -> None:
         """The cracks of load step ``step`` measured in mm (``measure_cracks``) and their totals."""
-        self._save_json(
-            f"cracks/stage_{step:02d}.json", {"cracks": [crack_to_json(c) for c in cracks], "summary": summary}
-        )
+        self._save_json(_measured_cracks_name(step), {"cracks": [crack_to_json(c) for c in cracks], "summary": summary})
 
     def load_measured_cracks(self, step: int) -> tuple[list[Crack], dict[str, Any]]:
-        data = self._json(f"cracks/stage_{step:02d}.json")
+        data = self._json(_measured_cracks_name(step))
         return [crack_from_json(c) for c in data["cracks"]], dict(data["summary"])
 
     def load_comparison(self) -> list[dict[str, Any]]:
         """New / grown / unchanged cracks between consecutive load steps (``compare_stages``)."""
-        return list(self._json("comparison.json")["pairs"])
+        return list(self._json(_COMPARISON)["pairs"])
 
     def save_comparison(self, pairs: list[dict[str, Any]]) -> None:
-        self._save_json("comparison.json", {"pairs": pairs})
+        self._save_json(_COMPARISON, {"pairs": pairs})
 
     def load_step_cog_path(self, step: int) -> Path:
         """Load step ``step``'s rectified specimen as a COG (an output, read by the tile routes)."""
@@ -330,31 +350,31 @@ class JobWorkspace:
         return self.root / f"stage_{step:02d}_overlay.png"
 
     def save_cracks_geojson(self, collection: dict[str, Any]) -> None:
-        self._save_json("cracks.geojson", collection)
+        self._save_json(_CRACKS_GEOJSON, collection)
 
     def save_cracks_csv(self, text: str) -> None:
-        with atomic_path(self.root / "cracks.csv") as tmp:
+        with atomic_path(self.root / _CRACKS_CSV) as tmp:
             tmp.write_text(text)
 
     # -- outputs --------------------------------------------------------------------------------
     def mosaic_path(self) -> Path:
         """The mosaic COG (an output, read by the tile routes)."""
-        return self.root / "mosaic.tif"
+        return self.root / _MOSAIC
 
     def has_report(self) -> bool:
-        return (self.root / "report.json").exists()
+        return (self.root / _REPORT).exists()
 
     def load_report(self) -> dict[str, Any]:
-        return dict(self._json("report.json"))
+        return dict(self._json(_REPORT))
 
     def save_report(self, report: dict[str, Any]) -> None:
-        self._save_json("report.json", report)
+        self._save_json(_REPORT, report)
 
     def load_footprints(self) -> dict[str, Any]:
-        return dict(self._json("footprints.geojson"))
+        return dict(self._json(_FOOTPRINTS))
 
     def save_footprints(self, collection: dict[str, Any]) -> None:
-        self._save_json("footprints.geojson", collection)
+        self._save_json(_FOOTPRINTS, collection)
 
     def _stage_report_file(self, stage: str) -> Path:
         return self.root / "reports" / f"{stage}.json"
@@ -387,33 +407,33 @@ class JobWorkspace:
             return range(len(self.load_config().get("stages", [])))
 
         outputs = {
-            "load_images": lambda: [r / "frames.json", *(self._working_image_file(k) for k in frames())],
+            "load_images": lambda: [r / _FRAMES, *(self._working_image_file(k) for k in frames())],
             "detect_features": lambda: [self._features_file(k) for k in frames()],
             "match_features": lambda: [
-                r / "pairs.json",
+                r / _PAIRS,
                 *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
             ],
-            "align_frames": lambda: [r / "alignment.json"],
-            "georeference": lambda: [r / "georef.json"],
-            "adjust_bundle": lambda: [r / "cameras.json"],
+            "align_frames": lambda: [r / _ALIGNMENT],
+            "georeference": lambda: [r / _GEOREF],
+            "adjust_bundle": lambda: [r / _CAMERAS],
             "orthorectify_frames": lambda: [
-                r / "georef.json",
+                r / _GEOREF,
                 *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
             ],
-            "compose_mosaic": lambda: [r / "coverage.json", self.mosaic_path()],
-            "write_report": lambda: [r / "report.json"],
-            "detect_corners": lambda: [r / "corners.json"],
-            "calibrate_camera": lambda: [r / "calibration.json"],
-            "fit_plumb_line": lambda: [r / "calibration.json"],
-            "calibrate_stereo": lambda: [r / "calibration.json"],
-            "orient_camera": lambda: [r / "orientation.json"],
+            "compose_mosaic": lambda: [r / _COVERAGE, self.mosaic_path()],
+            "write_report": lambda: [r / _REPORT],
+            "detect_corners": lambda: [r / _CORNERS],
+            "calibrate_camera": lambda: [r / _CALIBRATION],
+            "fit_plumb_line": lambda: [r / _CALIBRATION],
+            "calibrate_stereo": lambda: [r / _CALIBRATION],
+            "orient_camera": lambda: [r / _ORIENTATION],
             "rectify_specimen": lambda: [self._surface_file(), *(self._rectified_file(s) for s in steps())],
             "detect_cracks": lambda: [self._crack_mask_file(s) for s in steps()],
-            "measure_cracks": lambda: [r / f"cracks/stage_{s:02d}.json" for s in steps()],
-            "compare_stages": lambda: [r / "comparison.json"],
+            "measure_cracks": lambda: [r / _measured_cracks_name(s) for s in steps()],
+            "compare_stages": lambda: [r / _COMPARISON],
             "write_crack_report": lambda: [
-                r / "report.json",
-                r / "cracks.csv",
+                r / _REPORT,
+                r / _CRACKS_CSV,
                 *(self.load_step_cog_path(s) for s in steps()),
             ],
         }
@@ -427,13 +447,13 @@ class JobWorkspace:
     def outputs(self) -> dict[str, Path]:
         """Downloadable outputs that exist, by public name."""
         names = [
-            "mosaic.tif",
-            "report.json",
-            "footprints.geojson",
-            "calibration.json",
-            "cameras.json",
-            "cracks.geojson",
-            "cracks.csv",
+            _MOSAIC,
+            _REPORT,
+            _FOOTPRINTS,
+            _CALIBRATION,
+            _CAMERAS,
+            _CRACKS_GEOJSON,
+            _CRACKS_CSV,
         ]
         named = {name: self.root / name for name in names}
         for path in sorted([*self.root.glob("stage_*_rectified.tif"), *self.root.glob("stage_*_overlay.png")]):

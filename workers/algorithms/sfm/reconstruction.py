@@ -337,14 +337,19 @@ def _misfits(state: ReconstructionState, priors: Priors, options: Reconstruction
                 "starved",
                 f"the adjustment kept {kept[f]} of the {offered[f]} tie points its pairs offered (needs {need})",
             )
-        elif state.world and f in priors.gps:
-            miss = float(np.linalg.norm((state.centres[f] - np.asarray(priors.gps[f].position))[:2]))
-            if miss > GPS_MISFIT_SIGMAS * priors.gps[f].sigma_h:
-                out[f] = (
-                    "gps",
-                    f"its camera lies {miss:.1f} m from its GPS position (accuracy {priors.gps[f].sigma_h:g} m)",
-                )
+        elif (miss := _gps_miss_m(state, priors, f)) is not None and miss > GPS_MISFIT_SIGMAS * priors.gps[f].sigma_h:
+            out[f] = (
+                "gps",
+                f"its camera lies {miss:.1f} m from its GPS position (accuracy {priors.gps[f].sigma_h:g} m)",
+            )
     return out
+
+
+def _gps_miss_m(state: ReconstructionState, priors: Priors, f: int) -> float | None:
+    """Horizontal distance (m) of frame ``f``'s camera from its GPS fix; None without a fix or a world frame."""
+    if not state.world or f not in priors.gps:
+        return None
+    return float(np.linalg.norm((state.centres[f] - np.asarray(priors.gps[f].position))[:2]))
 
 
 def _recheck_frames(
@@ -530,10 +535,10 @@ def _warnings(state: ReconstructionState, priors: Priors, names: list[str]) -> l
     if state.world:
         far = []
         for f in map(int, np.flatnonzero(state.registered)):
-            if f in priors.gps:
-                miss = float(np.linalg.norm((state.centres[f] - np.asarray(priors.gps[f].position))[:2]))
-                if miss > GPS_WARNING_SIGMAS * priors.gps[f].sigma_h:
-                    far.append(f"{names[f]} {miss:.1f} m")
+            if (miss := _gps_miss_m(state, priors, f)) is not None and miss > GPS_WARNING_SIGMAS * priors.gps[
+                f
+            ].sigma_h:
+                far.append(f"{names[f]} {miss:.1f} m")
         if far:
             sigma = max(priors.gps[f].sigma_h for f in priors.gps)
             out.append(
