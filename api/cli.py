@@ -22,6 +22,9 @@ def build_parser() -> argparse.ArgumentParser:
     worker = sub.add_parser("worker", help="a Celery worker running pipeline stages")
     worker.add_argument("--queues", default="cpu", help="comma-separated queues to consume (cpu, gpu)")
     worker.add_argument("--concurrency", type=int, default=1, help="parallel jobs in this worker")
+    from api.accounts_cli import add_users_parser  # noqa: PLC0415 - keep the import list of --help short
+
+    add_users_parser(sub)
     process = sub.add_parser("process", help="run the mosaic pipeline on a folder of photos, no service needed")
     process.add_argument("directory", type=Path, help="folder of overlapping photos (JPEG, PNG, TIFF)")
     process.add_argument("-o", "--output", type=Path, required=True, help="output folder (mosaic.tif, report.json)")
@@ -42,7 +45,9 @@ def _add_http_args(parser: argparse.ArgumentParser, host: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    handler = {"up": _up, "serve": _serve, "worker": _worker, "process": _process}[args.command]
+    from api.accounts_cli import run_users  # noqa: PLC0415
+
+    handler = {"up": _up, "serve": _serve, "worker": _worker, "process": _process, "users": run_users}[args.command]
     return int(handler(args) or 0)
 
 
@@ -71,6 +76,9 @@ def _up(args: argparse.Namespace) -> int:
     settings = get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     print(f"fotoskhema: data in {settings.data_dir.resolve()}, Redis at {settings.redis_url}", flush=True)
+    from api.accounts_cli import announce_admin_token  # noqa: PLC0415
+
+    announce_admin_token(settings)  # a fresh data dir gets an admin token, printed once
     redis = start_redis(settings.redis_url, settings.data_dir / "redis")
     worker = start_worker(args.queues, 1, {"FOTOSKHEMA_DATA_DIR": str(settings.data_dir.resolve())})
     try:

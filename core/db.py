@@ -9,6 +9,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    Boolean,
     DateTime,
     Float,
     ForeignKey,
@@ -47,10 +48,40 @@ class Base(DeclarativeBase):
     type_annotation_map = {dict[str, Any]: JSON, datetime: UtcDateTime}
 
 
+class User(Base):
+    """Someone who may use the API; they authenticate with any of their unrevoked tokens."""
+
+    __tablename__ = "users"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    is_admin: Mapped[bool] = mapped_column(Boolean, default=False)  # sees and may change everything
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    tokens: Mapped[list[ApiToken]] = relationship(back_populates="user", cascade="all, delete-orphan")
+
+
+class ApiToken(Base):
+    """An API token, stored as the SHA-256 of its secret: the secret itself is shown once, when made."""
+
+    __tablename__ = "api_tokens"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id"), index=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)  # hex SHA-256 of the whole token
+    prefix: Mapped[str] = mapped_column(String(16))  # the token's first characters, to tell tokens apart
+    label: Mapped[str] = mapped_column(String(200), default="")
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    last_used_at: Mapped[datetime | None] = mapped_column(nullable=True)
+    revoked_at: Mapped[datetime | None] = mapped_column(nullable=True)
+    user: Mapped[User] = relationship(back_populates="tokens")
+
+
 class Flight(Base):
     __tablename__ = "flights"
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    # who made it; None for flights made before accounts, which only admins see
+    owner_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"), index=True, nullable=True)
     name: Mapped[str] = mapped_column(String(200))
     description: Mapped[str] = mapped_column(Text, default="")
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
@@ -81,6 +112,8 @@ class Job(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     # None for calibration jobs, whose photos are stored in the job's own folder
     flight_id: Mapped[int | None] = mapped_column(ForeignKey("flights.id"), index=True, nullable=True)
+    # who made it; None for jobs made before accounts, which only admins see
+    owner_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"), index=True, nullable=True)
     kind: Mapped[str] = mapped_column(String(32))
     status: Mapped[str] = mapped_column(String(16), default=JobStatus.queued, index=True)
     stage: Mapped[str] = mapped_column(String(64), default="")
@@ -90,6 +123,8 @@ class Job(Base):
     options: Mapped[dict[str, Any]] = mapped_column(default=dict)  # as requested, before defaults
     error: Mapped[str] = mapped_column(Text, default="")
     celery_id: Mapped[str] = mapped_column(String(64), default="")
+    heartbeat_at: Mapped[datetime | None] = mapped_column(nullable=True)  # last sign of life of its running stage
+    deliveries: Mapped[int] = mapped_column(Integer, default=0)  # starts of the current stage, reset when it ends
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
@@ -107,6 +142,7 @@ class Database:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         Base.metadata.create_all(self.engine)
+        _add_missing_columns(self.engine)
         _allow_jobs_without_flight(self.engine)
 
     @contextmanager
@@ -114,6 +150,31 @@ class Database:
         """A session that commits on success and rolls back on any error."""
         with self._sessions() as session, session.begin():
             yield session
+
+
+def _add_missing_columns(engine: Engine) -> None:
+    """Upgrade a database made by an earlier version: add the columns its tables lack (all nullable or
+    with a default), keeping every row. ``create_all`` has already made any table it lacked."""
+    inspector = inspect(engine)
+    for table in Base.metadata.sorted_tables:
+        present = {c["name"] for c in inspector.get_columns(table.name)}
+        missing = [c for c in table.columns if c.name not in present]
+        if not missing:
+            continue
+        with engine.begin() as conn:
+            for column in missing:
+                kind = column.type.compile(dialect=engine.dialect)
+                default = column.default.arg if column.default is not None and column.default.is_scalar else None
+                fill = "" if default is None else f" NOT NULL DEFAULT {_sql_literal(default)}"
+                conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {column.name} {kind}{fill}"))
+
+
+def _sql_literal(value: Any) -> str:
+    if isinstance(value, bool):
+        return "TRUE" if value else "FALSE"
+    if isinstance(value, int | float):
+        return repr(value)
+    return "'" + str(value).replace("'", "''") + "'"
 
 
 def _allow_jobs_without_flight(engine: Engine) -> None:

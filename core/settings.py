@@ -36,6 +36,13 @@ class Settings(BaseSettings):
     sse_poll_seconds: float = 0.5  # how often the event stream looks at the job record
     celery_queue: str = "cpu"  # queue the pipeline's tasks are sent to
 
+    # -- Access ----------------------------------------------------------------------------------
+    public_read: bool = False  # anyone may read flights, jobs, outputs and tiles without a token
+    allowed_hosts: list[str] = ["127.0.0.1", "localhost", "::1"]  # Host headers served; "*" serves any
+    cors_origins: list[str] = []  # browser origins allowed to call the API from another site; none by default
+    secret_key: str = ""  # signs tile and download URLs; empty: a random key kept in <data_dir>/secret_key
+    signed_url_seconds: int = 12 * 3600  # how long a signed tile or download URL stays valid
+
     def resolved_database_url(self) -> str:
         if self.database_url:
             return self.database_url
