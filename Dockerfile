@@ -1,7 +1,7 @@
 # syntax=docker/dockerfile:1
 # The API (and the CPU worker, which runs the same image with another command).
 #   docker build -t fotoskhema .
-#   docker run -p 8000:8000 -v fotoskhema-data:/data fotoskhema      # SQLite in /data, no Redis
+#   docker run -p 127.0.0.1:8000:8000 -v fotoskhema-data:/data fotoskhema   # SQLite in /data, no Redis
 # docker-compose.yml wires it to Redis, PostgreSQL and the workers.
 
 # Stage 1: the viewer's JavaScript (Leaflet, Swagger UI) from the npm registry, at build time only:
@@ -43,4 +43,6 @@ ENV FOTOSKHEMA_DATA_DIR=/data \
 VOLUME ["/data"]
 USER fotoskhema
 EXPOSE 8000
+# All interfaces of the container, which only the published port reaches (compose: 127.0.0.1 only); the
+# Host header is checked against FOTOSKHEMA_ALLOWED_HOSTS. --workers defaults to min(4, cores).
 CMD ["fotoskhema", "serve", "--host", "0.0.0.0", "--port", "8000"]

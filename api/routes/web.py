@@ -6,10 +6,13 @@ from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.openapi.docs import get_swagger_ui_html
-from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from sqlalchemy import text
+from sqlalchemy.exc import SQLAlchemyError
 
-from api.deps import DbDep, SettingsDep
+from api.deps import DbDep, QueueDep, SettingsDep
+from api.queue import MonitoredQueue
+from core.db import Database
 
 router = APIRouter()
 
@@ -31,14 +34,39 @@ def docs(request: Request) -> HTMLResponse:
     )
 
 
-@router.get("/api/health", tags=["service"])
-def health(db: DbDep) -> dict[str, Any]:
-    with db.session() as s:
-        s.execute(text("SELECT 1"))
-    return {"status": "ok", "database": "ok"}
+@router.get(
+    "/api/health",
+    tags=["service"],
+    responses={503: {"description": "the database, the broker or every worker is down"}},
+)
+def health(db: DbDep, queue: QueueDep, settings: SettingsDep) -> JSONResponse:
+    """Database, broker (Redis) and workers (a beacon in the last three beacon periods); 503 when any is down.
+    Each probe is bounded (a fraction of a second), so a monitor gets its answer within a second."""
+    checks = {"database": _database_state(db)}
+    if isinstance(queue, MonitoredQueue):  # a queue that stands in for Celery in tests has none to check
+        checks.update(queue.liveness(worker_max_age=3 * settings.worker_beacon_seconds))
+    healthy = all(state == "ok" for state in checks.values())
+    body = {"status": "ok" if healthy else "unavailable", **checks}
+    return JSONResponse(body, status_code=200 if healthy else 503)
+
+
+def _database_state(db: Database) -> str:
+    try:
+        with db.session() as s:
+            s.execute(text("SELECT 1"))
+    except SQLAlchemyError:
+        return "down"
+    return "ok"
 
 
 @router.get("/api/config", tags=["service"])
 def viewer_config(settings: SettingsDep) -> dict[str, Any]:
-    """What the viewer needs to know: an optional basemap URL template (empty: no basemap)."""
-    return {"basemap_url": settings.basemap_url}
+    """What the viewer needs to know: an optional basemap URL template (empty: no basemap), whether reads need
+    no token, and the upload limits it splits a big selection of photos by."""
+    return {
+        "basemap_url": settings.basemap_url,
+        "public_read": settings.public_read,
+        "max_upload_bytes": settings.max_upload_bytes,
+        "max_request_bytes": settings.max_request_bytes,
+        "max_files_per_request": settings.max_files_per_request,
+    }
