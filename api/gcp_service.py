@@ -7,12 +7,11 @@ from pathlib import Path
 from typing import Any
 
 from api.errors import InvalidInputError, NotFoundError, TooLargeError
-from api.limits import check_json
+from api.limits import MAX_GCP_BYTES, check_json
 from core.db import Database, Flight
 from workers.algorithms.sfm import GCP_FILE_NAMES, GroundControlPoint, LocalFrame, gcp_file_name, parse_gcp_file
 from workers.workspace import atomic_path, find_gcp_file, flight_folder
 
-MAX_GCP_BYTES = 5 * 1024 * 1024
 CHECK_FRAME = LocalFrame(epsg=32631, easting0=0.0, northing0=0.0)  # positions are not used when checking
 
 

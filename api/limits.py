@@ -1,6 +1,9 @@
-"""Bounds on every JSON the API parses (request bodies, the multipart ``options`` field, GCP files), checked
-before the JSON is parsed (its size, its nesting depth); then values no response or database can hold (NaN,
-Infinity, 1e400, lone surrogates), refused with their path, so that no such value is stored.
+"""Bounds on every request body and on every JSON the API parses.
+
+``RequestLimits`` counts a body while it streams, before anything is spooled: the whole body, each file of a
+multipart body, the number of its parts. Every JSON (request bodies, the multipart ``options`` field, GCP
+files) is checked before it is parsed (its size, its nesting depth); then values no response or database can
+hold (NaN, Infinity, 1e400, lone surrogates) are refused with their path, so that no such value is stored.
 
 Python's ``json`` recurses once per level, so a body of ten thousand ``[`` would otherwise end in a
 ``RecursionError``; the depth is counted first by a scan that does not recurse.
@@ -11,13 +14,17 @@ from __future__ import annotations
 import json
 import math
 import re
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from python_multipart.multipart import parse_options_header
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.errors import ApiError, InvalidInputError, TooLargeError
+from api.uploads import display_name
+from core.settings import Settings
 
 MAX_JSON_BYTES = 1024 * 1024  # a JSON body or options field; Starlette's own limit on a multipart field too
 MAX_JSON_DEPTH = 32  # nested objects and arrays; the deepest valid request (crack-survey options) has 7
@@ -163,3 +170,208 @@ async def _read_body(scope: Scope, receive: Receive) -> tuple[bytes, ApiError | 
         if not message.get("more_body", False):
             break
     return b"".join(chunks), None
+
+
+# -- Request bodies, bounded while they stream ---------------------------------------------------------------
+
+MAX_GCP_BYTES = 5 * 1024 * 1024  # a GCP file (ODM gcp_list.txt or OpenSfM JSON)
+MULTIPART_OVERHEAD = 64 * 1024  # what a small multipart request adds to its file: boundaries, part headers
+MAX_PART_HEADER_BYTES = 16 * 1024  # the headers of one multipart part
+
+
+@dataclass(frozen=True)
+class BodyLimits:
+    """The most one request may send: the whole body, and for multipart the number of parts and each one's size
+    (a file part's ``file_bytes`` unless ``field_file_bytes`` names its field; a part without a file name,
+    such as ``options``, ``MAX_JSON_BYTES``: Starlette's own limit on a form field)."""
+
+    request_bytes: int
+    parts: int = 16
+    file_bytes: int = MAX_JSON_BYTES
+    field_file_bytes: tuple[tuple[str, int], ...] = ()
+
+    def part_bytes(self, field: str, filename: str | None) -> int:
+        if filename is None:
+            return MAX_JSON_BYTES
+        return dict(self.field_file_bytes).get(field, self.file_bytes)
+
+
+_UPLOAD_ROUTES = [  # (method, path, kind): the routes that take files
+    ("POST", "/api/flights/{id}/images", "photos"),
+    ("POST", "/api/calibrations", "photos"),
+    ("POST", "/api/stereo-rigs", "photos"),
+    ("POST", "/api/crack-surveys", "survey"),
+    ("PUT", "/api/flights/{id}/gcps", "gcps"),
+]
+_ROUTE_PATTERNS = [
+    (method, re.compile("^" + re.escape(path).replace(re.escape("{id}"), "[^/]+") + "/?$"), kind)
+    for method, path, kind in _UPLOAD_ROUTES
+]
+
+
+def body_limits(settings: Settings, method: str, path: str, content_type: bytes) -> BodyLimits:
+    """The limits of a request: those of its route when it sends files to one that takes them, else a body of
+    at most ``MAX_JSON_BYTES`` (JSON, a form, anything else)."""
+    if content_type == b"multipart/form-data":
+        for route_method, pattern, kind in _ROUTE_PATTERNS:
+            if method == route_method and pattern.match(path):
+                photos = BodyLimits(
+                    settings.max_request_bytes, settings.max_files_per_request, settings.max_upload_bytes
+                )
+                if kind == "survey":
+                    return replace(photos, field_file_bytes=(("model", settings.max_mesh_bytes),))
+                if kind == "gcps":
+                    return BodyLimits(MAX_GCP_BYTES + MULTIPART_OVERHEAD, 4, MAX_GCP_BYTES)
+                return photos
+    return BodyLimits(MAX_JSON_BYTES)
+
+
+class _Refused(Exception):
+    """Raised into the application by ``receive`` when the body breaks a limit; ``RequestLimits`` answers it."""
+
+
+class RequestLimits:
+    """ASGI middleware in front of everything: a body is bounded before any of it is spooled or parsed.
+
+    A declared ``Content-Length`` over the route's limit is answered 413 without reading the body; otherwise
+    the bytes are counted as they arrive (chunked bodies too) and, in a multipart body, each part's size and
+    the number of parts. When a limit breaks, ``receive`` raises into the application, so Starlette's form
+    parser closes (and so deletes) the spooled files it made, no route has run, and the answer is a 413
+    ``{"detail": ...}`` naming the file or the limit, whatever the application was about to send.
+    """
+
+    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+        self.app = app
+        self.settings = settings
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        limits = body_limits(self.settings, scope["method"], scope["path"], _content_type(scope))
+        declared = dict(scope["headers"]).get(b"content-length", b"")
+        if declared.isdigit() and int(declared) > limits.request_bytes:
+            await _refuse(
+                scope, send, f"request body: {int(declared)} bytes; at most {limits.request_bytes} are accepted"
+            )
+            return
+        meter = _BodyMeter(limits, _boundary(scope))
+        started = False
+
+        async def counted() -> Message:
+            message = await receive()
+            if message["type"] == "http.request" and (problem := meter.feed(message.get("body", b""))):
+                raise _Refused(problem)
+            return message
+
+        async def guarded(message: Message) -> None:
+            nonlocal started
+            if meter.problem is None:  # once refused, the application's own answer (a 400) is not sent
+                started = started or message["type"] == "http.response.start"
+                await send(message)
+
+        try:
+            await self.app(scope, counted, guarded)
+        except _Refused:
+            pass
+        except Exception:
+            if meter.problem is None:
+                raise
+        if meter.problem is not None:
+            if started:  # a response under way cannot be replaced; the connection is cut instead
+                raise _Refused(meter.problem)
+            await _refuse(scope, send, meter.problem)
+
+
+async def _refuse(scope: Scope, send: Send, detail: str) -> None:
+    async def nothing() -> Message:
+        return {"type": "http.disconnect"}
+
+    # no "Connection: close": uvicorn then reads and drops the rest of the body for its keep-alive time, so the
+    # client, still sending, reads this answer instead of a connection reset
+    response = JSONResponse({"detail": detail}, status_code=413)
+    await response(scope, nothing, send)
+
+
+def _content_type(scope: Scope) -> bytes:
+    return bytes(dict(scope["headers"]).get(b"content-type", b"")).split(b";")[0].strip().lower()
+
+
+def _boundary(scope: Scope) -> bytes | None:
+    if _content_type(scope) != b"multipart/form-data":
+        return None
+    _, params = parse_options_header(dict(scope["headers"]).get(b"content-type", b""))
+    return params.get(b"boundary") or None
+
+
+class _BodyMeter:
+    """Counts a body as it streams: its size and, in a multipart body (``boundary`` given), the parts and the
+    size of each. Just enough of RFC 7578 to find where each part's data starts and ends (the boundary may be
+    split across chunks); Starlette parses the body itself. ``feed`` answers the first limit broken."""
+
+    def __init__(self, limits: BodyLimits, boundary: bytes | None) -> None:
+        self.limits = limits
+        self.delimiter = b"\r\n--" + boundary if boundary else b""
+        self.size = 0
+        self.problem: str | None = None
+        self.parts = 0
+        self.state = "data"  # data (the preamble too) -> after delimiter -> headers -> data ...; "end"
+        self.buffer = b"\r\n"  # the first delimiter has no line break before it
+        self.part: tuple[str, str | None, int] | None = None  # (field, file name, limit) of the part read now
+        self.part_size = 0
+
+    def feed(self, chunk: bytes) -> str | None:
+        if self.problem is None:
+            self.size += len(chunk)
+            if self.size > self.limits.request_bytes:
+                self.problem = f"request body: larger than {self.limits.request_bytes} bytes"
+            elif self.delimiter and self.state != "end":
+                self.buffer += chunk
+                self.problem = self._scan()
+        return self.problem
+
+    def _scan(self) -> str | None:
+        while True:
+            if self.state == "data":
+                found = self.buffer.find(self.delimiter)
+                keep = len(self.delimiter) - 1 if found < 0 else 0
+                counted = found if found >= 0 else max(0, len(self.buffer) - keep)
+                self.part_size += counted
+                if self.part is not None and self.part_size > self.part[2]:
+                    field, filename, limit = self.part
+                    what = f"{display_name(filename)}: file" if filename is not None else f"{field}: field"
+                    return f"{what} is larger than {limit} bytes"
+                if found < 0:
+                    self.buffer = self.buffer[counted:]
+                    return None
+                self.buffer, self.state, self.part = self.buffer[found + len(self.delimiter) :], "after", None
+            elif self.state == "after":
+                if len(self.buffer) < 2:
+                    return None
+                if self.buffer.startswith(b"--"):
+                    self.state, self.buffer = "end", b""
+                    return None
+                self.parts += 1
+                if self.parts > self.limits.parts:
+                    return f"more than {self.limits.parts} parts (files and fields) in one request"
+                self.state = "headers"
+            else:  # headers, from the line break after the delimiter to the blank line
+                end = self.buffer.find(b"\r\n\r\n")
+                if end < 0:
+                    if len(self.buffer) > MAX_PART_HEADER_BYTES:
+                        return f"part {self.parts}: headers larger than {MAX_PART_HEADER_BYTES} bytes"
+                    return None
+                self.part = self._part(self.buffer[:end])
+                self.buffer, self.state, self.part_size = self.buffer[end + 4 :], "data", 0
+
+    def _part(self, headers: bytes) -> tuple[str, str | None, int]:
+        disposition = b""
+        for line in headers.split(b"\r\n"):
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-disposition":
+                disposition = value.strip()
+        _, options = parse_options_header(disposition)
+        field = options.get(b"name", b"").decode("utf-8", "replace")
+        raw = options.get(b"filename")
+        filename = None if raw is None else raw.decode("utf-8", "replace")
+        return field, filename, self.limits.part_bytes(field, filename)

@@ -94,7 +94,12 @@ async def _stage(upload: UploadFile, folder: Path, settings: Settings) -> Staged
                     raise TooLargeError(f"{name}: file is larger than {settings.max_upload_bytes} bytes")
                 digest.update(chunk)
                 out.write(chunk)
-        limits = ImageLimits(settings.max_image_pixels, settings.max_image_side, settings.min_image_side)
+        limits = ImageLimits(
+            settings.max_image_pixels,
+            settings.max_image_side,
+            settings.min_image_side,
+            settings.image_decode_budget_bytes,
+        )
         meta = await run_in_threadpool(inspect_image, temp, limits)
     except InvalidImageError as exc:
         temp.unlink(missing_ok=True)

@@ -1,16 +1,30 @@
 """Validate an uploaded photo and read what photogrammetry needs from it (EXIF GPS, focal length,
-DJI XMP attitude). Pillow only: the API uses this without loading OpenCV."""
+DJI XMP attitude). Pillow only: the API uses this without loading OpenCV.
+
+Every byte of the image data is decoded, so a truncated or corrupt file is refused, but never into a
+full-size raster: a few-hundred-KiB PNG may declare 240 MP (720 MB decoded). A JPEG is decoded at 1/8 scale
+(libjpeg's DCT scaling, Pillow's ``draft``: every coefficient is still read); a PNG's zlib stream is inflated
+in bounded pieces and checked (chunk CRCs, filter bytes, exactly the data its header declares); other
+formats (TIFF) are decoded in full, within a process-wide memory budget shared by concurrent validations.
+"""
 
 from __future__ import annotations
 
 import math
 import re
+import struct
+import threading
 import warnings
+import zlib
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
-from PIL import Image, UnidentifiedImageError
+import numpy as np
+from PIL import Image, PngImagePlugin, UnidentifiedImageError
 
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
@@ -38,12 +52,14 @@ class ImageLimits:
     max_pixels: int = 250_000_000
     max_side: int = 100_000
     min_side: int = 16
+    decode_budget_bytes: int = 1024**3  # full decodes (TIFF) of all threads of the process hold at most this
 
 
 def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, Any]:
     """Check that ``path`` fully decodes within ``limits`` and return its metadata.
 
-    The header is checked before decoding, so a decompression bomb is refused without allocating it.
+    The header is checked before decoding, so a decompression bomb is refused without allocating it; the
+    decode itself holds a bounded amount of memory (see the module's docstring).
     Raises ``InvalidImageError`` with a reason a user can act on.
     """
     if path.stat().st_size == 0:
@@ -57,10 +73,10 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
             with Image.open(path) as img:
                 width, height = img.size
                 _check_dimensions(width, height, limits)
-                exif = img.getexif()
                 xmp = img.info.get("xmp", b"")
                 fmt = img.format or ""
-                img.load()  # full decode: a truncated or corrupt file fails here
+                _decode(img, path, decode_budget(limits.decode_budget_bytes))  # a truncated or corrupt file fails here
+                exif = Image.Image.getexif(img)  # not PngImageFile's, which decodes the image to look for EXIF
         except InvalidImageError:
             raise
         except (Image.DecompressionBombError, Image.DecompressionBombWarning):
@@ -76,6 +92,164 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
     meta.update(_exif_fields(exif))
     meta.update(_xmp_fields(xmp if isinstance(xmp, bytes) else str(xmp).encode()))
     return meta
+
+
+class DecodeBudget:
+    """Bytes of decoded pixels the threads of a process may hold at once; a decode larger than the whole
+    budget waits until it is alone."""
+
+    def __init__(self, total: int) -> None:
+        self.total, self.free = total, total
+        self._changed = threading.Condition()
+
+    @contextmanager
+    def hold(self, nbytes: int) -> Iterator[None]:
+        need = min(nbytes, self.total)
+        with self._changed:
+            self._changed.wait_for(lambda: self.free >= need)
+            self.free -= need
+        try:
+            yield
+        finally:
+            with self._changed:
+                self.free += need
+                self._changed.notify_all()
+
+
+@lru_cache(maxsize=4)
+def decode_budget(total: int) -> DecodeBudget:
+    """The process's budget of ``total`` bytes (one per size, shared by every caller)."""
+    return DecodeBudget(total)
+
+
+def _decode(img: Image.Image, path: Path, budget: DecodeBudget) -> None:
+    """Decode all of ``img``'s data without holding its full-size raster (a PNG, a JPEG) or within ``budget``."""
+    width, height = img.size
+    if img.format in ("JPEG", "MPO"):
+        img.draft(img.mode, ((width + 7) // 8, (height + 7) // 8))  # DCT scaling to 1/8: 1/64 of the pixels
+        img.load()
+    elif img.format == "PNG":
+        with path.open("rb") as f:
+            check_png_data(f, width, height)
+            _read_png_trailer(f, img.info)
+    else:
+        bands = len(img.getbands())
+        with budget.hold(width * height * bands * _BYTES_PER_BAND.get(img.mode, 4)):
+            img.load()
+
+
+_BYTES_PER_BAND = {"1": 1, "L": 1, "P": 1, "RGB": 1, "RGBA": 1, "CMYK": 1, "YCbCr": 1, "LA": 1, "PA": 1}
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # by colour type
+_ADAM7 = [(0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2)]
+PIECE = 1024 * 1024  # bytes read or inflated at a time
+
+
+def check_png_data(f: BinaryIO, width: int, height: int) -> None:
+    """Check a PNG's image data as a full decode would, holding ``PIECE`` bytes at a time: the zlib stream of
+    its IDAT chunks (each one's CRC right) inflates to at least the rows its header declares, with a filter
+    byte of 0 to 4 before each row of each Adam7 pass (PNG spec, sections 7 and 8); what follows is not
+    inflated. ``f`` is left at the chunk after the image data. Raises ``ValueError`` saying what is wrong."""
+    if f.read(8) != _PNG_SIGNATURE:
+        raise ValueError("not a PNG signature")
+    rows = _png_rows(f, width, height)
+    filters = _filter_bytes(rows)
+    inflate, expected, seen = zlib.decompressobj(), sum(n * size for n, size in rows), 0
+    for data in _png_idat(f):
+        while data and seen < expected and not inflate.eof:
+            try:
+                out = inflate.decompress(data, min(PIECE, expected - seen))
+            except zlib.error as exc:
+                raise ValueError(f"the PNG image data does not inflate ({exc})") from None
+            data = inflate.unconsumed_tail
+            if (bad := filters(seen, out)) is not None:
+                raise ValueError(f"unknown PNG row filter {bad}")
+            seen += len(out)
+    if seen < expected:
+        raise ValueError(f"image file is truncated ({seen} of {expected} bytes of image data)")
+
+
+def _read_png_trailer(f: BinaryIO, info: dict[Any, Any]) -> None:
+    """Read the chunks after a PNG's image data into ``info`` (EXIF, text, XMP) as Pillow's ``load`` does
+    (``PngImageFile.load_end``), with Pillow's own chunk readers and their limits on text."""
+    stream = PngImagePlugin.PngStream(f)
+    stream.im_info = info
+    while True:
+        try:
+            kind, pos, length = stream.read()
+        except (struct.error, SyntaxError):
+            return
+        if kind in (b"IEND", b"fcTL"):
+            return
+        try:
+            stream.call(kind, pos, length)
+        except (UnicodeDecodeError, EOFError):
+            return
+        except AttributeError:  # a chunk Pillow has no reader for
+            f.seek(length, 1)
+        f.read(4)  # its CRC, which Pillow does not check here either
+
+
+def _png_rows(f: BinaryIO, width: int, height: int) -> list[tuple[int, int]]:
+    """(rows, bytes per row with its filter byte) of each pass of the image (one, or Adam7's seven), from the
+    IHDR chunk (its CRC checked)."""
+    head = f.read(8)
+    length, kind = struct.unpack(">I4s", head) if len(head) == 8 else (0, b"")
+    data = f.read(13) if (kind, length) == (b"IHDR", 13) else b""
+    if len(data) != 13:
+        raise ValueError("the first PNG chunk is not a whole header (IHDR)")
+    if f.read(4) != struct.pack(">I", zlib.crc32(data, zlib.crc32(kind))):
+        raise ValueError("broken PNG file (the header's CRC is wrong)")
+    declared_w, declared_h, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", data)
+    if (declared_w, declared_h) != (width, height) or colour not in _PNG_CHANNELS:
+        raise ValueError("the PNG header does not describe the image")
+    bits = depth * _PNG_CHANNELS[colour]
+    passes = _ADAM7 if interlace else [(0, 0, 1, 1)]
+    sizes = [(-(-(height - y0) // dy), -(-(width - x0) // dx)) for x0, y0, dx, dy in passes]
+    return [(h, 1 + (w * bits + 7) // 8) for h, w in sizes if h > 0 and w > 0]
+
+
+def _filter_bytes(rows: list[tuple[int, int]]) -> Callable[[int, bytes], int | None]:
+    """A check of inflated data ``out`` found at ``offset`` in the stream: its first row filter byte that is
+    not 0 to 4, or None."""
+    passes, start = [], 0
+    for n, size in rows:
+        passes.append((start, start + n * size, size))
+        start += n * size
+
+    def first_bad(offset: int, out: bytes) -> int | None:
+        data = np.frombuffer(out, dtype=np.uint8)
+        for begin, end, size in passes:
+            first = begin + -(-max(offset - begin, 0) // size) * size
+            picked = data[np.arange(first, min(end, offset + len(out)), size) - offset]
+            if (bad := picked[picked > 4]).size:
+                return int(bad[0])
+        return None
+
+    return first_bad
+
+
+def _png_idat(f: BinaryIO) -> Iterator[bytes]:
+    """The image data, in pieces: the content of the consecutive IDAT chunks, each one's CRC checked once read
+    whole. It ends where the file or the IDAT chunks do."""
+    started = False
+    while len(head := f.read(8)) == 8:
+        length, kind = struct.unpack(">I4s", head)
+        if kind != b"IDAT":
+            if started or kind == b"IEND":
+                f.seek(-8, 1)
+                return
+            f.seek(length + 4, 1)  # a chunk before the image data, read by Pillow when it opened the file
+            continue
+        started, crc, left = True, zlib.crc32(kind), length
+        while left and (piece := f.read(min(PIECE, left))):
+            left -= len(piece)
+            crc = zlib.crc32(piece, crc)
+            yield piece
+        if left:
+            return
+        if f.read(4) != struct.pack(">I", crc):
+            raise ValueError("broken PNG file (the CRC of an image data chunk is wrong)")
 
 
 def _check_dimensions(width: int, height: int, limits: ImageLimits) -> None:

@@ -20,6 +20,8 @@ import numpy as np
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl")
 MAX_TRIANGLES = 2_000_000
+MAX_VERTICES = 3 * MAX_TRIANGLES  # every triangle with corners of its own (an unwelded STL)
+MAX_SHOWN = 200  # characters of a parser's message (which may quote the file) kept in an error
 
 
 @dataclass(frozen=True)
@@ -85,12 +87,36 @@ def read_mesh(data: bytes, name: str) -> Mesh:
     if suffix not in readers:
         raise MeshFormatError(f"{name}: unknown model format; use one of {', '.join(MESH_SUFFIXES)}")
     try:
+        _check_counts(suffix, data)
         vertices, triangles = readers[suffix](data)
     except MeshFormatError as exc:
         raise MeshFormatError(f"{name}: {exc}") from None
     except (ValueError, IndexError, KeyError, TypeError, OverflowError, struct.error) as exc:  # UnicodeDecodeError too
-        raise MeshFormatError(f"{name}: not a valid {suffix[1:].upper()} file ({exc})") from None
+        reason = str(exc) if len(str(exc)) <= MAX_SHOWN else str(exc)[:MAX_SHOWN] + "..."
+        raise MeshFormatError(f"{name}: not a valid {suffix[1:].upper()} file ({reason})") from None
     return _checked(name, vertices, triangles)
+
+
+def _check_counts(suffix: str, data: bytes) -> None:
+    """Refuse a model with more vertices or faces than accepted before any array or list is built: the
+    counts of a PLY header or a binary STL, or a count of an OBJ's ``v``/``f`` lines (one pass in C)."""
+    vertices, faces = 0, 0
+    if suffix == ".obj":
+        lines = b"\n" + data
+        vertices = lines.count(b"\nv ") + lines.count(b"\nv\t")
+        faces = lines.count(b"\nf ") + lines.count(b"\nf\t")
+    elif suffix == ".ply" and (end := data.find(b"end_header", 0, 1 << 20)) >= 0:
+        for line in data[:end].split(b"\n"):
+            parts = line.split()
+            if len(parts) == 3 and parts[0] == b"element" and parts[2].isdigit():
+                vertices += int(parts[2]) if parts[1] == b"vertex" else 0
+                faces += int(parts[2]) if parts[1] == b"face" else 0
+    elif suffix == ".stl" and len(data) >= 84 and len(data) == 84 + 50 * struct.unpack_from("<I", data, 80)[0]:
+        faces = struct.unpack_from("<I", data, 80)[0]  # binary: its size matches its triangle count
+    if faces > MAX_TRIANGLES:  # every face is at least one triangle
+        raise MeshFormatError(f"{faces} faces; at most {MAX_TRIANGLES} triangles are accepted")
+    if vertices > MAX_VERTICES:
+        raise MeshFormatError(f"{vertices} vertices; at most {MAX_VERTICES} are accepted")
 
 
 def _checked(name: str, vertices: np.ndarray, triangles: np.ndarray) -> Mesh:
