@@ -9,9 +9,14 @@
  * (flights.js, flight.js, job.js, result-map.js, crack-survey.js, crack-survey-new.js with
  * crack-survey-specimen.js, mesh.js and mesh-plan.js, over lib.js and kinds.js); Leaflet is the classic
  * script loaded before them and used as the global `L`.
+ *
+ * Sign-in (sign-in.js): a `#token=...` in the URL is kept and taken out of it before the first route. When
+ * a request is answered 401 (no token, or one that was revoked), the view is stopped and the sign-in form
+ * is shown in its place; once a token is accepted the route is rendered again.
  */
 
-import { ApiError, h, messageOf } from "./lib.js";
+import { ApiError, api, forgetToken, h, messageOf, onUnauthorized, storedToken } from "./lib.js";
+import { accountBar, signInForm, takeTokenFromUrl } from "./sign-in.js";
 import { renderFlightList } from "./flights.js";
 import { renderFlight } from "./flight.js";
 import { renderJob } from "./job.js";
@@ -29,10 +34,12 @@ const routes = [
   [/^#\/crack-surveys\/(\d+)$/, (view, root, m) => renderCrackSurvey(view, root, Number(m[1]))],
 ];
 let current = null; // the AbortController of the view shown
+let signIn = null; // the sign-in form, while it is shown instead of a view
 
 function route() {
   if (current) current.abort();
   current = new AbortController();
+  signIn = null;
   const view = { signal: current.signal };
   const root = document.getElementById("app");
   root.replaceChildren();
@@ -62,5 +69,58 @@ function renderProblem(root, err) {
   );
 }
 
-window.addEventListener("hashchange", route);
+// -- Sign-in -------------------------------------------------------------------------------------
+
+const SIGN_IN_NEEDED = "Sign in with your API token to use Fotoskhema.";
+const TOKEN_REFUSED = "Your token is no longer accepted (it may have been revoked): sign in again.";
+
+const account = accountBar(document.getElementById("account"), {
+  onSignIn: () => showSignIn(""),
+  onSignOut: () => {
+    forgetToken();
+    account.show(null);
+    showSignIn("You are signed out.");
+  },
+});
+
+/** Stop the view and show the sign-in form in its place (once: a view's parallel requests fail together). */
+function showSignIn(reason) {
+  if (signIn) return;
+  if (current) current.abort();
+  current = null;
+  document.title = "Sign in · Fotoskhema";
+  signIn = signInForm({
+    reason,
+    onSignedIn: (user) => {
+      account.show(user);
+      route();
+    },
+  });
+  document.getElementById("app").replaceChildren(signIn);
+  signIn.querySelector("input").focus();
+}
+
+onUnauthorized(({ sentToken }) => {
+  // An answer to a request sent before the token changed (signed in or out meanwhile) is old news.
+  if (sentToken !== storedToken()) return;
+  if (sentToken) forgetToken(); // refused: revoked or unknown
+  account.show(null);
+  showSignIn(sentToken ? TOKEN_REFUSED : SIGN_IN_NEEDED);
+});
+
+function showAccount() {
+  if (!storedToken()) {
+    account.show(null);
+    return;
+  }
+  // A refused token is answered 401, which shows the sign-in form (above); nothing else to do here.
+  api("GET", "/api/me").then((user) => account.show(user), () => {});
+}
+
+takeTokenFromUrl();
+showAccount();
+window.addEventListener("hashchange", () => {
+  if (takeTokenFromUrl()) showAccount(); // a sign-in link opened in this tab: the page is not loaded again
+  route();
+});
 route();

@@ -14,6 +14,7 @@
 
 import {
   api,
+  apiUrl,
   dataTable,
   downloadList,
   factList,
@@ -79,6 +80,7 @@ export async function renderCrackSurvey(view, root, jobId) {
   renderJobPage(view, root, job, {
     crumbs: [["Crack surveys", "#/crack-surveys"], [`Survey #${jobId}`]],
     cards: [result, residuals],
+    listHref: "#/crack-surveys",
     onSucceeded: () => showSurvey(view, jobId, result, residuals).catch(showLoadError(view, result, "survey")),
   });
 }
@@ -99,6 +101,8 @@ async function showSurvey(view, jobId, card, residualCard) {
     stepTiles(0),
   ]);
   if (signal.aborted) return;
+  // Links are the outputs list's signed URLs (a link cannot send the token), of this service only.
+  const outputUrls = new Map(outputs.map((o) => [o.name, apiUrl(o.url)]));
   const report = data && data.result;
   const steps = list(report && report.stages);
   if (!steps.length) {
@@ -131,7 +135,7 @@ async function showSurvey(view, jobId, card, residualCard) {
   function show(s) {
     current = s;
     const step = steps[s];
-    stepPanel.replaceChildren(slider, stepFacts(step, steps[s - 1], jobId, plane));
+    stepPanel.replaceChildren(slider, stepFacts(step, steps[s - 1], outputUrls, plane));
     legend.replaceChildren(...legendList(list(step.cracks)));
     cracks.draw(list(step.cracks));
     Object.assign(table, crackTable(step, (id) => cracks.select(id)));
@@ -164,8 +168,9 @@ function stepSlider(steps, onStep) {
   return h("div", {}, h("label", { for: "stage-slider" }, "Load step ", output), slider);
 }
 
-/** The load step's name, load and figures (and a mesh's rectification plane), and what changed since the load step before. */
-function stepFacts(step, previous, jobId, plane) {
+/** The load step's name, load and figures (and a mesh's rectification plane), and what changed since the load
+ * step before; a link to its overlay PNG when the outputs list (`outputUrls`: name -> signed URL) has it. */
+function stepFacts(step, previous, outputUrls, plane) {
   const cracks = list(step.cracks);
   const counts = countBy(cracks);
   let changes;
@@ -192,8 +197,8 @@ function stepFacts(step, previous, jobId, plane) {
       ["Seen", formatNumber(100 * step.coverage, 0, "%")],
       ...(plane ? plane.rows : []),
     ]),
-    step.overlay ? h("p", { class: "small" }, h("a", {
-      href: `/api/jobs/${jobId}/outputs/${encodeURIComponent(step.overlay)}`, download: step.overlay, "data-testid": "stage-overlay",
+    step.overlay && outputUrls.get(step.overlay) ? h("p", { class: "small" }, h("a", {
+      href: outputUrls.get(step.overlay), download: step.overlay, "data-testid": "stage-overlay",
     }, "This load step with its cracks drawn (PNG)")) : null);
 }
 

@@ -4,6 +4,7 @@ import {
   ACTIVE,
   api,
   apiForm,
+  authHeaders,
   breadcrumb,
   detailOf,
   formatBytes,
@@ -15,9 +16,12 @@ import {
   parseJson,
   plural,
   progressBar,
+  reportUnauthorized,
   statusBadge,
+  storedToken,
 } from "./lib.js";
 import { JobKind } from "./kinds.js";
+import { deleteControl } from "./delete.js";
 
 const JOB_POLL_MS = 3000; // how often the job list refreshes while a job is active
 
@@ -42,14 +46,22 @@ export async function renderFlight(view, root, flightId) {
     showImages();
   });
 
+  const deletion = deleteControl({
+    label: "Delete flight",
+    testid: "delete-flight",
+    question: `Delete the flight “${flight.name}” with its photos and all its jobs and their results? This cannot be undone.`,
+    path: `/api/flights/${flightId}`,
+    then: "#/",
+  });
   root.append(
     breadcrumb(["Flights", "#/"], [flight.name]),
     h(
       "div",
       { class: "page-head" },
-      h("h1", {}, flight.name),
+      h("div", { class: "head-title" }, h("h1", {}, flight.name), h("span", { class: "push-right" }, deletion.button)),
       flight.description ? h("p", { class: "lead" }, flight.description) : null,
       h("p", { class: "muted small" }, `Created ${formatDate(flight.created_at)} · `, countText),
+      deletion.error,
     ),
     h(
       "div",
@@ -88,16 +100,17 @@ function uploadPanel(view, flightId, onUploaded) {
   onAbort(view.signal, () => xhr && xhr.abort());
 
   function finish() {
+    if (xhr) xhr.abort();
     xhr = null;
     zone.classList.remove("busy");
     input.disabled = false;
     input.value = "";
   }
-  function upload(fileList) {
+  // One request per batch: the server takes at most `max_files_per_request` parts and `max_request_bytes` in
+  // one request, and stores each request's photos all or none.
+  async function upload(fileList) {
     const files = Array.from(fileList || []);
     if (!files.length || xhr) return;
-    const form = new FormData();
-    for (const file of files) form.append("files", file, file.name);
     const label = plural(files.length, "photo");
     const totalBytes = files.reduce((sum, f) => sum + f.size, 0);
     zone.classList.add("busy");
@@ -107,41 +120,75 @@ function uploadPanel(view, flightId, onUploaded) {
     bar.set(0);
     status.className = "upload-status";
     status.textContent = `Uploading ${label} (${formatBytes(totalBytes)})…`;
-
-    xhr = new XMLHttpRequest();
-    xhr.open("POST", `/api/flights/${flightId}/images`);
-    xhr.setRequestHeader("Accept", "application/json");
-    xhr.upload.onprogress = (event) => {
-      if (!event.lengthComputable) return bar.set(null);
-      const percent = (event.loaded / event.total) * 100;
-      bar.set(percent);
-      status.textContent = `Uploading ${label}… ${Math.round(percent)} %`;
-    };
-    xhr.upload.onload = () => {
-      bar.set(100);
-      status.textContent = `Reading metadata of ${label}…`;
-    };
-    xhr.onload = () => {
-      const request = xhr;
-      const data = parseJson(request.responseText);
-      finish();
-      if (request.status >= 200 && request.status < 300 && data && Array.isArray(data.images)) {
-        bar.tone("done");
-        status.textContent = `Uploaded ${plural(data.images.length, "photo")}.`;
-        onUploaded(data.images);
-      } else {
-        bar.tone("error");
-        status.className = "upload-status error";
-        status.textContent = `Upload failed, nothing was stored: ${detailOf(data, request.status, request.statusText)}`;
+    let stored = 0;
+    let sentBytes = 0;
+    try {
+      const limits = await api("GET", "/api/config", { signal: view.signal });
+      for (const batch of batches(files, limits)) {
+        const batchBytes = batch.reduce((sum, f) => sum + f.size, 0);
+        const answer = await sendBatch(batch, (loaded) => {
+          const percent = totalBytes ? ((sentBytes + loaded) / totalBytes) * 100 : 100;
+          bar.set(percent);
+          status.textContent = `Uploading ${label}… ${Math.round(percent)} %`;
+        });
+        if (!answer.ok) {
+          const kept = stored ? ` ${plural(stored, "photo")} of ${files.length} were stored before;` : "";
+          throw new Error(`Upload failed,${kept} nothing of the last ${plural(batch.length, "photo")} was stored: ${answer.detail}`);
+        }
+        stored += answer.images.length;
+        sentBytes += batchBytes;
+        onUploaded(answer.images);
       }
-    };
-    xhr.onerror = () => {
-      finish();
+      bar.tone("done");
+      status.textContent = `Uploaded ${plural(stored, "photo")}.`;
+    } catch (error) {
+      if (view.signal.aborted) return;
       bar.tone("error");
       status.className = "upload-status error";
-      status.textContent = "Upload failed: the server could not be reached.";
-    };
-    xhr.send(form);
+      status.textContent = messageOf(error);
+    } finally {
+      finish();
+    }
+  }
+
+  /** POST one batch with an XMLHttpRequest (fetch reports no upload progress); it sends the token as `api` does. */
+  function sendBatch(batch, onProgress) {
+    return new Promise((resolve) => {
+      const form = new FormData();
+      for (const file of batch) form.append("files", file, file.name);
+      const sentToken = storedToken();
+      xhr = new XMLHttpRequest();
+      xhr.open("POST", `/api/flights/${flightId}/images`);
+      xhr.setRequestHeader("Accept", "application/json");
+      for (const [name, value] of Object.entries(authHeaders(sentToken))) xhr.setRequestHeader(name, value);
+      xhr.upload.onprogress = (event) => {
+        if (event.lengthComputable) onProgress((event.loaded / event.total) * batch.reduce((s, f) => s + f.size, 0));
+      };
+      xhr.upload.onload = () => {
+        status.textContent = `Reading metadata of ${plural(batch.length, "photo")}…`;
+      };
+      xhr.onload = () => {
+        const request = xhr;
+        xhr = null;
+        const data = parseJson(request.responseText);
+        if (request.status >= 200 && request.status < 300 && data && Array.isArray(data.images)) {
+          resolve({ ok: true, images: data.images });
+          return;
+        }
+        const detail = detailOf(data, request.status, request.statusText);
+        if (request.status === 401) reportUnauthorized(sentToken, detail);
+        resolve({ ok: false, detail });
+      };
+      xhr.onerror = () => {
+        xhr = null;
+        resolve({ ok: false, detail: "the server could not be reached" });
+      };
+      xhr.onabort = () => {
+        xhr = null;
+        resolve({ ok: false, detail: "the upload was stopped" });
+      };
+      xhr.send(form);
+    });
   }
 
   input.addEventListener("change", () => upload(input.files));
@@ -368,4 +415,26 @@ function jobItems(jobs) {
       ),
     );
   return h("ul", { class: "plain" }, items);
+}
+
+/** `files` split into upload requests within the server's limits: files per request, and bytes per request
+ * (with room for the multipart framing); a file alone larger than a request's limit goes alone, and the server
+ * says why it refuses it. */
+export function batches(files, limits) {
+  const maxFiles = Math.max(1, Number(limits.max_files_per_request) || 100);
+  const maxBytes = Math.max(1, (Number(limits.max_request_bytes) || 2 ** 31) * 0.95);
+  const out = [];
+  let current = [];
+  let bytes = 0;
+  for (const file of files) {
+    if (current.length && (current.length >= maxFiles || bytes + file.size > maxBytes)) {
+      out.push(current);
+      current = [];
+      bytes = 0;
+    }
+    current.push(file);
+    bytes += file.size;
+  }
+  if (current.length) out.push(current);
+  return out;
 }

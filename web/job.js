@@ -11,13 +11,16 @@ import {
   h,
   humanize,
   jobOutputs,
+  jobSignature,
   messageOf,
   onAbort,
   parseJson,
   progressBar,
+  signedUrl,
   statusBadge,
 } from "./lib.js";
 import { CALIBRATION_KINDS, showCalibration } from "./calibration.js";
+import { deleteControl } from "./delete.js";
 import { JobKind, JobStatus } from "./kinds.js";
 import { showQuality } from "./quality.js";
 import { showResult } from "./result-map.js";
@@ -44,6 +47,7 @@ export async function renderJob(view, root, jobId) {
       ? [["Calibrations"], [`Job #${jobId}`]]
       : [["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]],
     cards: [result, quality],
+    listHref: calibration ? "#/" : `#/flights/${job.flight_id}`,
     onSucceeded: (done) => showOutcome(view, done, result, quality, calibration),
   });
 }
@@ -51,12 +55,23 @@ export async function renderJob(view, root, jobId) {
 /**
  * What every job page shows: breadcrumb, title and status, `cards` (the result, above the progress once the
  * job has succeeded: it is what one came for), then the live progress by Server-Sent Events; calls
- * `onSucceeded(job)` once, when the job has succeeded.
+ * `onSucceeded(job)` once, when the job has succeeded. A "Delete job" button goes to `listHref` once done.
  */
-export function renderJobPage(view, root, initial, { crumbs, cards, onSucceeded }) {
+export function renderJobPage(view, root, initial, { crumbs, cards, listHref, onSucceeded }) {
   const jobId = initial.id;
   document.title = `Job ${jobId} · Fotoskhema`;
-  const progress = jobProgressCard(view, jobId, (next) => update(next), () => followJob(view, jobId, update));
+  // EventSource cannot send the token: the stream is opened with the job's signature (GET /api/jobs/<id>
+  // answers it; a crack survey's record does not carry it, so it is asked for then).
+  let signature = null;
+  const follow = () => {
+    signature = signature || (typeof initial.signature === "string" ? Promise.resolve(initial.signature)
+      : jobSignature(jobId, { signal: view.signal }).catch(() => {
+        signature = null; // asked for again next time; this time the stream is tried without it
+        return "";
+      }));
+    followJob(view, jobId, update, signature);
+  };
+  const progress = jobProgressCard(view, jobId, (next) => update(next), follow);
   const badge = statusBadge(initial.status, { "data-testid": "job-status", role: "status", "aria-live": "polite" });
   const updated = h("span", {});
   let resultShown = false;
@@ -72,15 +87,24 @@ export function renderJobPage(view, root, initial, { crumbs, cards, onSucceeded 
     }
   }
 
+  const deletion = deleteControl({
+    label: "Delete job",
+    testid: "delete-job",
+    question: `Delete job #${jobId} and its results? A running job is stopped first. This cannot be undone.`,
+    path: `/api/jobs/${jobId}`,
+    then: listHref,
+  });
   root.append(
     breadcrumb(...crumbs),
-    h("div", { class: "page-head row" }, h("h1", {}, `${humanize(initial.kind)} job #${jobId}`), badge),
+    h("div", { class: "page-head row" }, h("h1", {}, `${humanize(initial.kind)} job #${jobId}`), badge,
+      h("span", { class: "push-right" }, deletion.button)),
+    deletion.error,
     h("p", { class: "muted small" }, `Created ${formatDate(initial.created_at)} · last update `, updated),
     ...cards,
     progress.node,
   );
   update(initial);
-  if (!TERMINAL.has(initial.status)) followJob(view, jobId, update);
+  if (!TERMINAL.has(initial.status)) follow();
 }
 
 /** A succeeded job's result: the calibration, or the mosaic map and its Quality card. */
@@ -105,9 +129,14 @@ export function showLoadError(view, card, what) {
   };
 }
 
-/** Follow a job's Server-Sent Events; fall back to polling if the stream keeps failing. */
-function followJob(view, jobId, onJob) {
-  const source = new EventSource(`/api/jobs/${jobId}/events`);
+/**
+ * Follow a job's Server-Sent Events, opened with `signature` (a promise of the job's signature); fall back to
+ * polling (with the token) if the stream keeps failing, e.g. once the signature has expired.
+ */
+async function followJob(view, jobId, onJob, signature) {
+  const query = await signature;
+  if (view.signal.aborted) return; // e.g. a refused token (401) has shown the sign-in form meanwhile
+  const source = new EventSource(signedUrl(`/api/jobs/${jobId}/events`, query));
   let failures = 0;
   let timer = null;
   const handle = (event) => {

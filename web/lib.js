@@ -5,6 +5,14 @@
  * sets a string tooltip, popup or divIcon as HTML: give it a node built with `h()` instead. A URL
  * attribute (href, src) is only set to an http(s) or blob: URL (`safeUrl`), and a link to a job's
  * output only to one of this service's own /api/ paths (`apiUrl`).
+ *
+ * Every request to the API goes through `api` or `apiForm` here (the photo upload, an XMLHttpRequest for its
+ * progress, adds `authHeaders()` itself): they send the signed-in user's token as `Authorization: Bearer`.
+ * The token lives in sessionStorage only (never a cookie, never localStorage): it goes with the tab, and
+ * another site's page cannot make the browser send it. An answer 401 calls the handler set with
+ * `onUnauthorized` (sign-in.js shows the sign-in form). Image tags, Leaflet tiles and EventSource cannot send
+ * a header: they take the URLs the API signs (TileJSON tiles, outputs' `url`), or a job's `signature`
+ * appended with `signedUrl`.
  */
 
 import { JobStatus } from "./kinds.js";
@@ -266,29 +274,92 @@ export function parseJson(text) {
   }
 }
 
-/** The JSON of an answer; an ApiError for an error answer. */
-async function answer(response) {
+// -- Sign-in token -------------------------------------------------------------------------------
+
+const TOKEN_KEY = "fotoskhema.token";
+let unauthorizedHandler = () => {};
+
+/** The signed-in user's API token ("" when none): sessionStorage only, never a cookie. */
+export function storedToken() {
+  try {
+    return window.sessionStorage.getItem(TOKEN_KEY) || "";
+  } catch {
+    return ""; // storage disabled: nobody is signed in
+  }
+}
+
+export function storeToken(token) {
+  window.sessionStorage.setItem(TOKEN_KEY, token);
+}
+
+export function forgetToken() {
+  window.sessionStorage.removeItem(TOKEN_KEY);
+}
+
+/** `{ Authorization: "Bearer <token>" }` for `token` (default: the stored one); `{}` when there is none. */
+export function authHeaders(token = storedToken()) {
+  return token ? { Authorization: `Bearer ${token}` } : {};
+}
+
+/** Call `handler({ sentToken, detail })` when an API answer is 401 (no token, or one the server refuses). */
+export function onUnauthorized(handler) {
+  unauthorizedHandler = handler;
+}
+
+/** Tell the sign-in that a request sent with `sentToken` ("" for none) was answered 401. */
+export function reportUnauthorized(sentToken, detail) {
+  try {
+    unauthorizedHandler({ sentToken, detail });
+  } catch (err) {
+    console.warn("the sign-in handler failed", err);
+  }
+}
+
+/** `path` with a job's `signature` (the `exp=...&sig=...` of GET /api/jobs/<id>) appended, if there is one. */
+export function signedUrl(path, signature) {
+  if (!signature) return path;
+  return `${path}${path.includes("?") ? "&" : "?"}${signature}`;
+}
+
+/** The `signature` that opens job `jobId`'s tiles, downloads and event stream without a token ("" if none). */
+export async function jobSignature(jobId, { signal } = {}) {
+  const job = await api("GET", `/api/jobs/${jobId}`, { signal });
+  return (job && typeof job.signature === "string" && job.signature) || "";
+}
+
+// -- Requests ------------------------------------------------------------------------------------
+
+/** The JSON of an answer; an ApiError for an error answer. A 401 is reported unless `quiet`. */
+async function answer(response, sentToken, quiet) {
   const data = parseJson(await response.text());
-  if (!response.ok) throw new ApiError(response.status, detailOf(data, response.status, response.statusText));
+  if (!response.ok) {
+    const error = new ApiError(response.status, detailOf(data, response.status, response.statusText));
+    if (response.status === 401 && !quiet) reportUnauthorized(sentToken, error.message);
+    throw error;
+  }
   return data;
 }
 
 /**
- * Ask the JSON API; `body` (optional) is sent as JSON. `signal` (an AbortSignal, e.g. the view's) aborts
- * the request: the promise then rejects with the signal's reason, an AbortError.
+ * Ask the JSON API with the stored token; `body` (optional) is sent as JSON. `signal` (an AbortSignal, e.g.
+ * the view's) aborts the request: the promise then rejects with the signal's reason, an AbortError. `token`
+ * (optional) sends that token instead, and a 401 is then only the ApiError (the sign-in checks a token so).
  */
-export async function api(method, path, { body, signal } = {}) {
-  const init = { method, headers: { Accept: "application/json" }, signal };
+export async function api(method, path, { body, signal, token } = {}) {
+  const sent = token === undefined ? storedToken() : token;
+  const init = { method, headers: { Accept: "application/json", ...authHeaders(sent) }, signal };
   if (body !== undefined) {
     init.headers["Content-Type"] = "application/json";
     init.body = JSON.stringify(body);
   }
-  return answer(await fetch(path, init));
+  return answer(await fetch(path, init), sent, token !== undefined);
 }
 
 /** Send a multipart form (file uploads) and answer the JSON, like `api`. */
 export async function apiForm(method, path, form, { signal } = {}) {
-  return answer(await fetch(path, { method, body: form, headers: { Accept: "application/json" }, signal }));
+  const sent = storedToken();
+  const headers = { Accept: "application/json", ...authHeaders(sent) };
+  return answer(await fetch(path, { method, body: form, headers, signal }), sent, false);
 }
 
 /** A job's outputs list ([{ name, url, size_bytes }]). */

@@ -1,4 +1,5 @@
-"""Browser fixtures: one headless Chromium per module, and a fresh watched page per test."""
+"""Browser fixtures: one headless Chromium per module, a fresh watched page per test, and that page signed in
+as the live service's admin."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from tests.browser.support import LAUNCH_ARGS, PageWatch, chromium_path
+from tests.browser.support import LAUNCH_ARGS, PageWatch, chromium_path, sign_in_by_link
 
 
 @pytest.fixture(scope="module")
@@ -31,3 +32,12 @@ def watched_page(browser: Any) -> Iterator[tuple[Any, PageWatch]]:
     watch.attach(page)
     yield page, watch
     context.close()
+
+
+@pytest.fixture
+def signed_in_page(watched_page: tuple[Any, PageWatch], live_service: Any) -> tuple[Any, PageWatch]:
+    """The watched page, signed in as the live service's admin by a ``#token=`` link (the token then stays in
+    the tab's sessionStorage across the test's navigations)."""
+    page, _ = watched_page
+    sign_in_by_link(page, live_service.url, live_service.token)
+    return watched_page

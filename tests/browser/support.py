@@ -102,6 +102,15 @@ class PageWatch:
         assert not foreign, f"requests that left the service: {foreign}"
 
 
+def sign_in_by_link(page: Any, service_url: str, token: str, route: str = "/") -> None:
+    """Open ``route`` (e.g. ``/`` or ``/jobs/3``) with a sign-in link (``#<route>?token=...``; ``#token=...`` for
+    ``/``) and wait until the top bar says who is signed in."""
+    from playwright.sync_api import expect
+
+    page.goto(f"{service_url}/#token={token}" if route == "/" else f"{service_url}/#{route}?token={token}")
+    expect(page.get_by_test_id("signed-in-as")).to_be_visible()
+
+
 def wait_for(page: Any, script: str, timeout_ms: int, watch: PageWatch, what: str) -> None:
     """Wait for ``script`` to return true; on timeout, fail saying what the page reported meanwhile."""
     from playwright.sync_api import TimeoutError as PlaywrightTimeoutError

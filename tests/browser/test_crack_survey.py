@@ -28,7 +28,7 @@ from workers.algorithms.specimen import read_mesh
 pytestmark = pytest.mark.browser
 
 MM_PER_PX = 0.25
-STAGE_TILE = re.compile(r"/tiles/\d+/load-steps/(\d+)/\d+/\d+/\d+\.png$")
+STAGE_TILE = re.compile(r"/tiles/\d+/load-steps/(\d+)/\d+/\d+/\d+\.png(?:\?|$)")  # signed: ?exp=...&sig=...
 SECOND_STEP_TILES_SETTLED_JS = """() => {
   const tiles = [...document.querySelectorAll('[data-testid="map"] img.leaflet-tile')]
     .filter((img) => img.src.includes('/tiles/'));
@@ -98,10 +98,10 @@ def _stage_tiles(watch: Any, stage: int) -> list[tuple[str, int, str]]:
     return [r for r in watch.tile_responses if (m := STAGE_TILE.search(r[0])) and int(m[1]) == stage]
 
 
-def test_two_stage_survey_made_and_read_in_the_browser(watched_page, live_service, scene: CrackSurveyScene) -> None:
+def test_two_stage_survey_made_and_read_in_the_browser(signed_in_page, live_service, scene: CrackSurveyScene) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     photos = [[p for p in scene.photos if p.stage == s][0] for s in range(2)]
     page.goto(f"{live_service.url}/")
     page.get_by_test_id("start-crack-survey").click()
@@ -180,13 +180,15 @@ def test_two_stage_survey_made_and_read_in_the_browser(watched_page, live_servic
     watch.assert_clean(live_service.url)
 
 
-def test_mesh_survey_of_a_curved_panel_made_in_the_browser(watched_page, live_service, panel: CrackSurveyScene) -> None:
+def test_mesh_survey_of_a_curved_panel_made_in_the_browser(
+    signed_in_page, live_service, panel: CrackSurveyScene
+) -> None:
     """The panel's model chosen (after a malformed one, refused before anything is sent), two stages of one
     photo each, corners picked in the plan view and marks typed (X, Y, Z); a refusal for too few points, then
     the survey, whose crack counts are the truth's."""
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     assert panel.mesh_path is not None
     mesh = read_mesh(panel.mesh_path.read_bytes(), panel.mesh_path.name)
     photos = [[p for p in panel.photos if p.stage == s][0] for s in range(2)]
@@ -251,15 +253,19 @@ def test_mesh_survey_of_a_curved_panel_made_in_the_browser(watched_page, live_se
     watch.assert_clean(live_service.url)
 
 
-def test_failed_survey_shows_its_error(watched_page, live_service, scene: CrackSurveyScene, tmp_path: Path) -> None:
+def test_failed_survey_shows_its_error(signed_in_page, live_service, scene: CrackSurveyScene, tmp_path: Path) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     options = json.loads(json.dumps(scene.options(MM_PER_PX)))  # the scene's own lists stay as they are
     options["stages"][1]["photos"][0]["control_points"][5]["pixel"][0] += 60.0  # a point clicked off its mark
     files = [("files", (p.name, p.read_bytes(), "image/png")) for p in scene.paths()]
     response = httpx.post(
-        f"{live_service.url}/api/crack-surveys", files=files, data={"options": json.dumps(options)}, timeout=60
+        f"{live_service.url}/api/crack-surveys",
+        files=files,
+        data={"options": json.dumps(options)},
+        timeout=60,
+        headers=live_service.headers,
     )
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=120)
@@ -277,12 +283,12 @@ def test_failed_survey_shows_its_error(watched_page, live_service, scene: CrackS
     watch.assert_clean(live_service.url)
 
 
-def test_camera_of_a_calibration_job_is_sent_by_its_id(watched_page, live_service, scene: CrackSurveyScene) -> None:
+def test_camera_of_a_calibration_job_is_sent_by_its_id(signed_in_page, live_service, scene: CrackSurveyScene) -> None:
     """The finished calibration jobs are offered (the job list is answered here); the survey names the one
     picked, and the API's refusal of it is shown. No job runs."""
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     job = {"flight_id": None, "status": "succeeded", "created_at": "2026-01-02T03:04:05", "options": {}}
     jobs = [
         {**job, "id": 41, "kind": "calibration"},
@@ -325,12 +331,12 @@ def test_camera_of_a_calibration_job_is_sent_by_its_id(watched_page, live_servic
     watch.assert_clean(live_service.url)
 
 
-def test_mesh_plane_and_model_are_sent(watched_page, live_service, panel: CrackSurveyScene) -> None:
+def test_mesh_plane_and_model_are_sent(signed_in_page, live_service, panel: CrackSurveyScene) -> None:
     """A plane through three model points is sent with the mesh's name and the model file as the ``model``
     field; the API's refusal is shown and nothing entered is lost. No job runs."""
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     assert panel.mesh_path is not None
     sent: list[bytes] = []
 

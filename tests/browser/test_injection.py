@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.browser.support import MOSAIC_TILES_SETTLED_JS, PageWatch, wait_for
+from tests.browser.support import ARTIFACTS, MOSAIC_TILES_SETTLED_JS, PageWatch, wait_for
 from tests.crack_scenes import CrackSurveyScene, make_crack_survey
 from tests.scenes import make_flight
 
@@ -43,16 +43,20 @@ STEP_LABELS = [f"10 kN {IMG}", "20 kN <details open ontoggle=window.__pwned=1>"]
 SURVEY_PHOTOS = [f"{IMG} step {s + 1}.png" for s in range(2)]
 JS_URL = "javascript:window.__pwned=1"
 
-# Elements or attributes the payloads would have created had they been parsed as HTML.
-MARKUP_FOUND_JS = """() => [...document.querySelectorAll(
-  '#app img[src="x"], #app [onerror], #app [onload], #app [ontoggle], #app iframe, #app script, #app details, '
-  + '.leaflet-tooltip *:not(span), a[href^="javascript:" i]')].map((node) => node.outerHTML)"""
+USER_NAME = f'admin"><img src=x onerror={PWN}><b>root</b><script>window.__pwned=1</script>'
+
+# Elements or attributes the payloads would have created had they been parsed as HTML, in the page (#app) or
+# in the top bar (the signed-in user's name); the viewer itself makes no <b>.
+MARKUP_FOUND_JS = """() => [...document.querySelectorAll(['#app', '.topbar']
+  .flatMap((root) => ['img[src="x"]', '[onerror]', '[onload]', '[ontoggle]', 'iframe', 'script', 'details', 'b']
+    .map((s) => `${root} ${s}`))
+  .concat(['.leaflet-tooltip *:not(span)', 'a[href^="javascript:" i]']).join(', '))].map((node) => node.outerHTML)"""
 
 
 @pytest.fixture
-def page_watch(watched_page: tuple[Any, PageWatch]) -> tuple[Any, PageWatch, list[str]]:
+def page_watch(signed_in_page: tuple[Any, PageWatch]) -> tuple[Any, PageWatch, list[str]]:
     """The watched page, and every dialog it opened (an ``alert`` run by an injected handler)."""
-    page, watch = watched_page
+    page, watch = signed_in_page
     dialogs: list[str] = []
 
     def on_dialog(dialog: Any) -> None:
@@ -104,15 +108,21 @@ def hostile_mosaic(live_service: Any, tmp_path_factory: pytest.TempPathFactory) 
     planar mosaic: {"flight", "images" (the upload's answer), "job"}."""
     url = live_service.url
     flight = make_flight(tmp_path_factory.mktemp("hostile") / "frames", n_frames=5, frame_size=(480, 360), seed=7)
-    created = httpx.post(f"{url}/api/flights", json={"name": FLIGHT_NAME, "description": FLIGHT_DESCRIPTION})
+    created = httpx.post(
+        f"{url}/api/flights",
+        json={"name": FLIGHT_NAME, "description": FLIGHT_DESCRIPTION},
+        headers=live_service.headers,
+    )
     assert created.status_code == 201, created.text
     files = [("files", (name, p.read_bytes(), "image/jpeg")) for name, p in zip(PHOTO_NAMES, flight.paths, strict=True)]
-    uploaded = httpx.post(f"{url}/api/flights/{created.json()['id']}/images", files=files, timeout=60)
+    uploaded = httpx.post(
+        f"{url}/api/flights/{created.json()['id']}/images", files=files, timeout=60, headers=live_service.headers
+    )
     assert uploaded.status_code == 201, uploaded.text
     images = uploaded.json()["images"]
     assert [img["filename"] for img in images] == PHOTO_NAMES, "the API keeps the names for display"
     body = {"flight_id": created.json()["id"], "kind": "mosaic", "options": {}}
-    response = httpx.post(f"{url}/api/jobs", json=body, timeout=10)
+    response = httpx.post(f"{url}/api/jobs", json=body, timeout=10, headers=live_service.headers)
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=180)
     assert job["status"] == "succeeded", f"mosaic job ended {job['status']}: {job['error']}"
@@ -132,7 +142,11 @@ def hostile_survey(live_service: Any, tmp_path_factory: pytest.TempPathFactory) 
         files.append(("files", (SURVEY_PHOTOS[s], photos[photo["image"]].read_bytes(), "image/png")))
         photo["image"] = SURVEY_PHOTOS[s]
     response = httpx.post(
-        f"{live_service.url}/api/crack-surveys", files=files, data={"options": json.dumps(options)}, timeout=60
+        f"{live_service.url}/api/crack-surveys",
+        files=files,
+        data={"options": json.dumps(options)},
+        timeout=60,
+        headers=live_service.headers,
     )
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=180)
@@ -218,7 +232,7 @@ def test_job_page_map_footprints_and_quality(page_watch, live_service, hostile_m
                 output["url"] = JS_URL
         route.fulfill(json=answer)
 
-    page.route(re.compile(r"/outputs/report\.json$"), splice_report)
+    page.route(re.compile(r"/outputs/report\.json(?:\?|$)"), splice_report)
     page.route(re.compile(rf"/api/jobs/{job['id']}/outputs$"), splice_outputs)
     page.goto(f"{live_service.url}/#/jobs/{job['id']}")
     expect(page.get_by_test_id("job-status")).to_have_text("succeeded")
@@ -288,7 +302,7 @@ def test_job_error_and_progress_detail(page_watch, live_service, hostile_mosaic)
     stream = f"retry: 600000\nevent: progress\ndata: {json.dumps(later)}\n\n"
     page.route(re.compile(rf"/api/jobs/{job_id}$"), lambda route: route.fulfill(json=running))
     page.route(
-        re.compile(rf"/api/jobs/{job_id}/events$"),
+        re.compile(rf"/api/jobs/{job_id}/events(?:\?|$)"),
         lambda route: route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=stream),
     )
     page.route(re.compile(rf"/api/jobs/{job_id}/cancel$"), lambda route: route.fulfill(json=cancelled))
@@ -299,6 +313,34 @@ def test_job_error_and_progress_detail(page_watch, live_service, hostile_mosaic)
     page.get_by_test_id("cancel-job").click()
     expect(page.get_by_test_id("job-status")).to_have_text("cancelled")
     expect(page.get_by_test_id("job-error")).to_have_text(f"Error: {cancelled['error']}")
+    _assert_inert(page, watch, dialogs, live_service.url)
+
+
+# -- The signed-in user ------------------------------------------------------------------------------
+
+
+def test_signed_in_user_name(page_watch, live_service) -> None:
+    """The name GET /api/me answers (the server allows only letters, digits and ._-, so it is answered here)
+    is shown as text in "Signed in as", after a reload and after signing in with the form."""
+    from playwright.sync_api import expect
+
+    page, watch, dialogs = page_watch
+    me = {"name": USER_NAME, "is_admin": True, "tokens": []}
+    page.route(re.compile(r"/api/me$"), lambda route: route.fulfill(json=me))
+    page.reload()
+    expect(page.get_by_test_id("signed-in-as")).to_have_text(f"Signed in as {USER_NAME}")
+    expect(page.get_by_test_id("user-name")).to_have_text(USER_NAME)
+    expect(page.get_by_test_id("signed-in-as")).to_have_attribute("title", f"{USER_NAME} (administrator)")
+    expect(page.get_by_role("heading", name="Flights", exact=True)).to_be_visible()
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "injection_user_name.png"))
+    _assert_inert(page, watch, dialogs, live_service.url)
+
+    page.get_by_test_id("sign-out").click()
+    page.get_by_test_id("token-input").fill(live_service.token)
+    page.get_by_test_id("sign-in-submit").click()
+    expect(page.get_by_test_id("user-name")).to_have_text(USER_NAME)
+    expect(page.get_by_role("heading", name="Flights", exact=True)).to_be_visible()
     _assert_inert(page, watch, dialogs, live_service.url)
 
 

@@ -64,7 +64,13 @@ def _numbers(text: str) -> list[float]:
 
 
 def _post_job(live_service: Any, path: str, files: list[tuple[str, tuple[str, bytes, str]]], options: dict) -> dict:
-    response = httpx.post(f"{live_service.url}{path}", files=files, data={"options": json.dumps(options)}, timeout=60)
+    response = httpx.post(
+        f"{live_service.url}{path}",
+        files=files,
+        data={"options": json.dumps(options)},
+        timeout=60,
+        headers=live_service.headers,
+    )
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=120)
     assert job["status"] == "succeeded", f"{path} job ended {job['status']}: {job['error']}"
@@ -81,11 +87,18 @@ def planar_job(live_service: Any, tmp_path_factory: pytest.TempPathFactory) -> d
     folder = tmp_path_factory.mktemp("quality") / "frames"
     flight = make_flight(folder, n_frames=5, frame_size=(480, 360), gps=True, seed=7)
     url = live_service.url
-    created = httpx.post(f"{url}/api/flights", json={"name": "Quality test flight"}, timeout=10).json()
-    uploaded = httpx.post(f"{url}/api/flights/{created['id']}/images", files=_jpegs(flight.paths, "files"), timeout=60)
+    created = httpx.post(
+        f"{url}/api/flights", json={"name": "Quality test flight"}, timeout=10, headers=live_service.headers
+    ).json()
+    uploaded = httpx.post(
+        f"{url}/api/flights/{created['id']}/images",
+        files=_jpegs(flight.paths, "files"),
+        timeout=60,
+        headers=live_service.headers,
+    )
     assert uploaded.status_code < 300, uploaded.text
     body = {"flight_id": created["id"], "kind": "mosaic", "options": {}}
-    response = httpx.post(f"{url}/api/jobs", json=body, timeout=10)
+    response = httpx.post(f"{url}/api/jobs", json=body, timeout=10, headers=live_service.headers)
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=180)
     assert job["status"] == "succeeded", f"mosaic job ended {job['status']}: {job['error']}"
@@ -98,10 +111,10 @@ def _screenshot(page: Any, name: str) -> None:
 
 
 @pytest.mark.realdata
-def test_calibration_job_page(watched_page, live_service) -> None:
+def test_calibration_job_page(signed_in_page, live_service) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     lefts = sorted(shared_data("calib_chessboard").glob("left*.jpg"))
     job = _post_job(live_service, "/api/calibrations", _jpegs(lefts, "files"), {"pattern": [9, 6], "square_mm": 25})
 
@@ -121,7 +134,9 @@ def test_calibration_job_page(watched_page, live_service) -> None:
     expect(page.get_by_test_id("view-points").locator("tbody tr")).to_have_count(54)  # 9 x 6 corners
     page.get_by_test_id("view-pick").select_option(index=2)
     expect(page.get_by_test_id("view-points").locator("caption")).to_contain_text(lefts[2].name)
-    expect(page.get_by_test_id("download-calibration")).to_have_attribute("href", re.compile(r"calibration\.json$"))
+    expect(page.get_by_test_id("download-calibration")).to_have_attribute(
+        "href", re.compile(r"calibration\.json\?exp=\d+&sig=[^&]+$")
+    )
     expect(page.get_by_test_id("job-detail")).to_have_text("Finished: the camera is calibrated.")
     expect(page.get_by_test_id("map")).to_have_count(0)
     page.wait_for_load_state("networkidle")
@@ -131,18 +146,22 @@ def test_calibration_job_page(watched_page, live_service) -> None:
 
 
 @pytest.mark.realdata
-def test_failed_calibration_shows_its_error(watched_page, live_service, tmp_path) -> None:
+def test_failed_calibration_shows_its_error(signed_in_page, live_service, tmp_path) -> None:
     import cv2
     import numpy as np
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     blank = tmp_path / "blank.jpg"  # no board: 2 usable views where a calibration needs 3
     cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
     photos = [*sorted(shared_data("calib_chessboard").glob("left*.jpg"))[:2], blank]
     options = json.dumps({"pattern": [9, 6], "square_mm": 25})
     response = httpx.post(
-        f"{live_service.url}/api/calibrations", files=_jpegs(photos, "files"), data={"options": options}, timeout=60
+        f"{live_service.url}/api/calibrations",
+        files=_jpegs(photos, "files"),
+        data={"options": options},
+        timeout=60,
+        headers=live_service.headers,
     )
     assert response.status_code == 202, response.text
     job = live_service.wait_for_job(response.json()["id"], timeout=120)
@@ -159,10 +178,10 @@ def test_failed_calibration_shows_its_error(watched_page, live_service, tmp_path
 
 
 @pytest.mark.realdata
-def test_stereo_rig_page_and_measure(watched_page, live_service) -> None:
+def test_stereo_rig_page_and_measure(signed_in_page, live_service) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     folder = shared_data("calib_chessboard")
     files = _jpegs(sorted(folder.glob("left*.jpg"))[:6], "left") + _jpegs(
         sorted(folder.glob("right*.jpg"))[:6], "right"
@@ -195,10 +214,10 @@ def test_stereo_rig_page_and_measure(watched_page, live_service) -> None:
     watch.assert_clean(live_service.url)
 
 
-def test_quality_card_of_planar_mosaic(watched_page, live_service, planar_job) -> None:
+def test_quality_card_of_planar_mosaic(signed_in_page, live_service, planar_job) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
     quality = page.get_by_test_id("quality")
     expect(quality).to_be_visible()
@@ -213,12 +232,12 @@ def test_quality_card_of_planar_mosaic(watched_page, live_service, planar_job) -
     watch.assert_clean(live_service.url)
 
 
-def test_quality_card_shows_triangulation(watched_page, live_service, planar_job) -> None:
+def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_job) -> None:
     """The ortho part of the card, from a planar report with an ortho ``triangulation`` spliced in (and
     some fields removed): the rendering is checked here whatever the state of the ortho pipeline."""
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
 
     def splice(route: Any) -> None:
         report = route.fetch().json()
@@ -227,7 +246,7 @@ def test_quality_card_shows_triangulation(watched_page, live_service, planar_job
         del report["gps_residual_rms_m"]
         route.fulfill(json=report)
 
-    page.route(re.compile(r"/outputs/report\.json$"), splice)
+    page.route(re.compile(r"/outputs/report\.json(?:\?|$)"), splice)
     page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
     expect(page.get_by_test_id("registered")).to_have_text("28 / 29")
     expect(page.get_by_test_id("not-registered")).to_contain_text("frame_028.jpg: too few tie points")
@@ -248,10 +267,10 @@ def test_quality_card_shows_triangulation(watched_page, live_service, planar_job
     watch.assert_clean(live_service.url)
 
 
-def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_path) -> None:
+def test_flight_page_mode_and_gcps(signed_in_page, live_service, planar_job, tmp_path) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     flight_id = planar_job["flight_id"]
     gcps = tmp_path / "gcp_list.txt"
     gcps.write_text(
@@ -295,18 +314,23 @@ def test_flight_page_mode_and_gcps(watched_page, live_service, planar_job, tmp_p
     watch.assert_clean(live_service.url)
 
 
-def test_ortho_job_from_the_flight_page(watched_page, live_service, tmp_path) -> None:
+def test_ortho_job_from_the_flight_page(signed_in_page, live_service, tmp_path) -> None:
     """A user picks Ortho on the flight page; the finished job's card shows the real triangulation."""
     from playwright.sync_api import expect
 
     from tests.browser.support import JOB_TIMEOUT_MS, MOSAIC_TILES_SETTLED_JS, TERMINAL_STATUS_JS, wait_for
     from tests.terrain_scenes import make_terrain_flight
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     flight = make_terrain_flight(tmp_path / "terrain", rows=2, per_row=4, frame_size=(480, 360), seed=6)
     url = live_service.url
-    created = httpx.post(f"{url}/api/flights", json={"name": "Relief"}, timeout=10).json()
-    uploaded = httpx.post(f"{url}/api/flights/{created['id']}/images", files=_jpegs(flight.paths, "files"), timeout=60)
+    created = httpx.post(f"{url}/api/flights", json={"name": "Relief"}, timeout=10, headers=live_service.headers).json()
+    uploaded = httpx.post(
+        f"{url}/api/flights/{created['id']}/images",
+        files=_jpegs(flight.paths, "files"),
+        timeout=60,
+        headers=live_service.headers,
+    )
     assert uploaded.status_code == 201, uploaded.text
     page.goto(f"{url}/#/flights/{created['id']}")
     page.get_by_test_id("mode-ortho").check()

@@ -30,10 +30,10 @@ def photos(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, list[Pa
     return "synthetic", flight.paths, "480 × 360"
 
 
-def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> None:
+def test_mosaic_job_from_upload_to_map(signed_in_page, live_service, photos) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     name, paths, size_text = photos
 
     page.goto(f"{live_service.url}/")
@@ -63,8 +63,9 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> No
     expect(page.get_by_test_id("job-progress")).to_have_attribute("aria-valuenow", "100")
     expect(page.locator("li.stage")).not_to_have_count(0)
     expect(page.locator("li.stage:not(.stage-done)")).to_have_count(0)  # every stage done, with its time
-    followed = any(url.endswith("/events") for url in watch.request_urls)
-    assert followed, "the job page did not follow the job by Server-Sent Events"
+    # EventSource cannot send the token: the stream is opened with the job's signature.
+    followed = any(re.search(r"/events\?exp=\d+&sig=[^&]+$", url) for url in watch.request_urls)
+    assert followed, "the job page did not follow the job by Server-Sent Events (with the job's signature)"
 
     expect(page.get_by_test_id("map")).to_be_visible()
     expect(page.locator('[data-testid="map"] img.leaflet-tile-loaded[src*="/tiles/"]').first).to_be_visible(
@@ -100,10 +101,10 @@ def test_mosaic_job_from_upload_to_map(watched_page, live_service, photos) -> No
     watch.assert_clean(live_service.url)
 
 
-def test_flight_list_and_offline_api_docs(watched_page, live_service) -> None:
+def test_flight_list_and_offline_api_docs(signed_in_page, live_service) -> None:
     from playwright.sync_api import expect
 
-    page, watch = watched_page
+    page, watch = signed_in_page
     page.goto(f"{live_service.url}/")
     expect(page.get_by_role("heading", name="Flights", exact=True)).to_be_visible()
     expect(page.get_by_test_id("flight-name-input")).to_be_visible()

@@ -20,18 +20,19 @@ pytestmark = pytest.mark.e2e
 
 
 def upload_flight(service: LiveService, name: str, paths: list[Path]) -> int:
-    flight = httpx.post(f"{service.url}/api/flights", json={"name": name}, timeout=10).json()
+    flight = httpx.post(f"{service.url}/api/flights", json={"name": name}, headers=service.headers, timeout=10).json()
     files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in paths]
-    response = httpx.post(f"{service.url}/api/flights/{flight['id']}/images", files=files, timeout=120)
+    response = httpx.post(
+        f"{service.url}/api/flights/{flight['id']}/images", files=files, headers=service.headers, timeout=120
+    )
     assert response.status_code == 201, response.text
     assert len(response.json()["images"]) == len(paths)
     return int(flight["id"])
 
 
 def run_job(service: LiveService, flight_id: int, options: dict | None = None) -> dict:
-    response = httpx.post(
-        f"{service.url}/api/jobs", json={"flight_id": flight_id, "kind": "mosaic", "options": options or {}}, timeout=10
-    )
+    body = {"flight_id": flight_id, "kind": "mosaic", "options": options or {}}
+    response = httpx.post(f"{service.url}/api/jobs", json=body, headers=service.headers, timeout=10)
     assert response.status_code == 202, response.text
     job = service.wait_for_job(response.json()["id"])
     assert job["status"] == "succeeded", f"{job['error']} (logs in {service.logs})"
@@ -39,9 +40,11 @@ def run_job(service: LiveService, flight_id: int, options: dict | None = None) -
 
 
 def download(service: LiveService, job_id: int, name: str, to: Path) -> Path:
-    outputs = httpx.get(f"{service.url}/api/jobs/{job_id}/outputs", timeout=10).json()["outputs"]
-    url = next(o["url"] for o in outputs if o["name"] == name)
-    to.write_bytes(httpx.get(url, timeout=60).content)
+    outputs = httpx.get(f"{service.url}/api/jobs/{job_id}/outputs", headers=service.headers, timeout=10).json()
+    url = next(o["url"] for o in outputs["outputs"] if o["name"] == name)
+    response = httpx.get(url, timeout=60)  # no token: the listed url is signed, as a browser's link needs
+    assert response.status_code == 200, response.text
+    to.write_bytes(response.content)
     return to
 
 
@@ -59,28 +62,41 @@ def test_synthetic_flight_becomes_cog_and_tiles(live_service: LiveService, tmp_p
         mask = src.dataset_mask()
         assert 0.3 < (mask > 0).mean() < 1.0  # data inside, transparent corners outside
 
-    tilejson = httpx.get(f"{live_service.url}/tiles/{job['id']}/tilejson.json", timeout=10).json()
+    tilejson = httpx.get(
+        f"{live_service.url}/tiles/{job['id']}/tilejson.json", headers=live_service.headers, timeout=10
+    )
+    tilejson = tilejson.json()
     assert tilejson["georeferenced"] is True
     west, south, east, north = tilejson["bounds"]
     for lat, lon, _ in flight.gps:
         assert west < lon < east and south < lat < north
     z = tilejson["maxzoom"]
     x, y = _tile_of(tilejson["center"][0], tilejson["center"][1], z)
-    response = httpx.get(tilejson["tiles"][0].format(z=z, x=x, y=y), timeout=30)
+    response = httpx.get(tilejson["tiles"][0].format(z=z, x=x, y=y), timeout=30)  # no token: the template is signed
     assert response.status_code == 200 and response.headers["content-type"] == "image/png"
     tile = np.asarray(Image.open(io.BytesIO(response.content)).convert("RGBA"))
     assert tile.shape == (256, 256, 4)
     assert (tile[..., 3] > 0).mean() > 0.5 and tile[..., :3][tile[..., 3] > 0].std() > 10  # textured mosaic
-    far = httpx.get(f"{live_service.url}/tiles/{job['id']}/{z}/0/0.png", timeout=10)
+    far = httpx.get(f"{live_service.url}/tiles/{job['id']}/{z}/0/0.png", headers=live_service.headers, timeout=10)
     assert far.status_code == 404
+    unsigned = httpx.get(f"{live_service.url}/tiles/{job['id']}/{z}/{x}/{y}.png", timeout=10)
+    assert unsigned.status_code == 401, "a tile needs a token or a signed URL"
 
 
 def test_event_stream_reports_progress_until_the_end(live_service: LiveService, tmp_path: Path) -> None:
     flight = make_flight(tmp_path / "flight", n_frames=4, frame_size=(480, 360), seed=5)
     flight_id = upload_flight(live_service, "sse", flight.paths)
-    job = httpx.post(f"{live_service.url}/api/jobs", json={"flight_id": flight_id}, timeout=10).json()
+    job = httpx.post(
+        f"{live_service.url}/api/jobs", json={"flight_id": flight_id}, headers=live_service.headers, timeout=10
+    ).json()
+    events_url = f"{live_service.url}/api/jobs/{job['id']}/events"
+    assert httpx.get(events_url, timeout=10).status_code == 401, "the stream needs a token or the job's signature"
+    signature = httpx.get(f"{live_service.url}/api/jobs/{job['id']}", headers=live_service.headers, timeout=10)
+    signature = signature.json()["signature"]
     events = []
-    with httpx.stream("GET", f"{live_service.url}/api/jobs/{job['id']}/events", timeout=240) as stream:
+    # As the viewer's EventSource opens it: no header can be sent, the job's signature is in the query.
+    with httpx.stream("GET", f"{events_url}?{signature}", timeout=240) as stream:
+        assert stream.status_code == 200
         event = ""
         for line in stream.iter_lines():
             if line.startswith("event: "):
@@ -135,6 +151,7 @@ def test_ortho_job_with_ground_control(live_service: LiveService, tmp_path: Path
     response = httpx.put(
         f"{live_service.url}/api/flights/{flight_id}/gcps",
         files={"file": ("gcp_list.txt", gcp_text.encode())},
+        headers=live_service.headers,
         timeout=10,
     )
     assert response.status_code == 200 and response.json()["with_position"] == 5, response.text
