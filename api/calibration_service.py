@@ -14,6 +14,7 @@ from api.job_service import enqueue, job_or_404, validated_config
 from api.models import JobOut, JobResultOut, MarksUpdate
 from api.photo_jobs import job_of_kind, record_photo_job
 from api.queue import JobQueue
+from core.accounts import Principal
 from core.db import Database
 from core.kinds import JobKind, JobStatus
 from core.settings import Settings
@@ -30,8 +31,11 @@ async def create_calibration(
     kind: JobKind,
     groups: dict[str, list[UploadFile]],
     options: dict[str, Any],
+    *,
+    owner: Principal | None = None,
 ) -> JobOut:
-    """Record and queue a ``calibration`` or ``stereo_calibration`` job over the uploaded photos.
+    """Record and queue a ``calibration`` or ``stereo_calibration`` job over the uploaded photos, owned by
+    ``owner``.
 
     ``groups`` maps a side ("" for one camera, "left"/"right" for a rig) to its photos, in order.
     """
@@ -42,7 +46,8 @@ async def create_calibration(
         _check_sizes(kind, frames)
         _check_marks(config.get("markers", []), {f["name"] for f in frames})
 
-    return await record_photo_job(db, settings, queue, kind, options, config, groups, check)
+    owner_id = owner.user_id if owner else None
+    return await record_photo_job(db, settings, queue, kind, options, config, groups, check, owner_id=owner_id)
 
 
 def _check_counts(kind: JobKind, config: dict[str, Any], groups: dict[str, list[UploadFile]]) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -15,10 +16,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fotoskhema", description="Fotoskhema photogrammetry service.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     up = sub.add_parser("up", help="everything on this machine: Redis, one Celery worker and the API + viewer")
-    _add_http_args(up, "127.0.0.1")
+    _add_http_args(up, "127.0.0.1", workers=max(1, min(4, _cores() // 2)))  # the other half: the worker
     up.add_argument("--queues", default="cpu,gpu", help="queues the embedded worker consumes")
     serve = sub.add_parser("serve", help="the REST API, tile server and viewer only")
-    _add_http_args(serve, "127.0.0.1")
+    _add_http_args(serve, "127.0.0.1", workers=min(4, _cores()))
     worker = sub.add_parser("worker", help="a Celery worker running pipeline stages")
     worker.add_argument("--queues", default="cpu", help="comma-separated queues to consume (cpu, gpu)")
     worker.add_argument("--concurrency", type=int, default=1, help="parallel jobs in this worker")
@@ -38,9 +39,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _add_http_args(parser: argparse.ArgumentParser, host: str) -> None:
+def _add_http_args(parser: argparse.ArgumentParser, host: str, workers: int) -> None:
     parser.add_argument("--host", default=host, help="interface to listen on")
     parser.add_argument("--port", type=int, default=8000, help="TCP port")
+    parser.add_argument(
+        "--workers", type=int, default=workers, help=f"API processes (uvicorn workers; default {workers} here)"
+    )
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,38 +62,67 @@ def main(argv: list[str] | None = None) -> int:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn  # noqa: PLC0415 - keep `fotoskhema --help` fast
 
-    from api.main import create_app  # noqa: PLC0415
+    from core.db import Database  # noqa: PLC0415
+    from core.settings import get_settings  # noqa: PLC0415
 
-    uvicorn.run(create_app(), host=args.host, port=args.port, log_level="info")
+    settings = get_settings()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    db = Database(settings.resolved_database_url())  # the schema, made once before the API processes start
+    from core.accounts import has_users  # noqa: PLC0415
+
+    if not has_users(db):
+        print("fotoskhema: no users yet: `fotoskhema users create NAME --admin` prints a token", flush=True)
+    uvicorn.run(
+        "api.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers, log_level="info"
+    )
     return 0
 
 
 def _worker(args: argparse.Namespace) -> int:
     from workers.celery_app import app  # noqa: PLC0415
 
-    app.worker_main(["worker", "--loglevel", "INFO", "-Q", args.queues, "--concurrency", str(args.concurrency)])
+    app.worker_main(
+        [
+            "worker",
+            "--loglevel",
+            "INFO",
+            "-Q",
+            args.queues,
+            "--concurrency",
+            str(args.concurrency),
+            "--without-gossip",  # workers need not know each other: the database and Redis coordinate them
+            "--without-mingle",
+        ]
+    )
     return 0
 
 
 def _up(args: argparse.Namespace) -> int:
-    from api.embedded_stack import start_redis, start_worker, stop  # noqa: PLC0415
+    from api.embedded_stack import Supervised, start_redis, start_worker  # noqa: PLC0415
     from core.settings import get_settings  # noqa: PLC0415
 
     # uvicorn re-raises SIGTERM once it has shut down; turn it into SystemExit so the children stop too.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     settings = get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    print(f"fotoskhema: data in {settings.data_dir.resolve()}, Redis at {settings.redis_url}", flush=True)
+    redis_shown = re.sub(r"://[^@/]*@", "://***@", settings.redis_url)  # never print its password
+    print(f"fotoskhema: data in {settings.data_dir.resolve()}, Redis at {redis_shown}", flush=True)
     from api.accounts_cli import announce_admin_token  # noqa: PLC0415
 
-    announce_admin_token(settings)  # a fresh data dir gets an admin token, printed once
-    redis = start_redis(settings.redis_url, settings.data_dir / "redis")
-    worker = start_worker(args.queues, 1, {"FOTOSKHEMA_DATA_DIR": str(settings.data_dir.resolve())})
+    token = announce_admin_token(settings)  # a fresh data dir gets an admin token, printed once
+    worker_env = {"FOTOSKHEMA_DATA_DIR": str(settings.data_dir.resolve())}
+    # Redis first: the worker waits for it, and each is started again when it dies.
+    redis = Supervised("redis", lambda: start_redis(settings.redis_url, settings.data_dir / "redis"))
+    worker = Supervised("worker", lambda: start_worker(args.queues, 1, worker_env))
+    redis.start()
+    worker.start()
     try:
-        print(f"fotoskhema: viewer on http://{args.host}:{args.port}/", flush=True)
+        sign_in = f"#token={token}" if token else ""  # the viewer stores it and takes it out of the address
+        print(f"fotoskhema: viewer on http://{args.host}:{args.port}/{sign_in}", flush=True)
         return _serve(args)
     finally:
-        stop([worker, redis])
+        worker.stop()
+        redis.stop()
 
 
 def _process(args: argparse.Namespace) -> int:

@@ -21,6 +21,7 @@ from api.models import JobOut, JobResultOut
 from api.photo_jobs import job_of_kind, record_photo_job
 from api.queue import JobQueue
 from api.uploads import display_name
+from core.accounts import Principal
 from core.db import Database, Job
 from core.kinds import JobKind, JobStatus
 from core.settings import Settings
@@ -40,15 +41,17 @@ async def create_crack_survey(
     files: list[UploadFile],
     options: dict[str, Any],
     model: UploadFile | None = None,
+    *,
+    owner: Principal | None = None,
 ) -> JobOut:
     """Record and queue a crack survey over ``files``, the photos its ``options.stages`` name, and ``model``,
-    the specimen's mesh when ``options.specimen.mesh`` names one."""
-    config = validated_config(JobKind.crack_survey, with_calibration_camera(db, settings, options))
+    the specimen's mesh when ``options.specimen.mesh`` names one; it belongs to ``owner``."""
+    config = validated_config(JobKind.crack_survey, with_calibration_camera(db, settings, options, owner))
     try:
         camera = Camera.from_json(config["camera"])
     except ValueError as exc:
         raise InvalidInputError(f"options.camera: {exc}") from None
-    attachments = await _mesh_attachment(config, model, settings.max_upload_bytes)
+    attachments = await _mesh_attachment(config, model, settings.max_mesh_bytes)
     photos = {p["image"]: p for stage in config["stages"] for p in stage["photos"]}
 
     def check(frames: list[dict[str, Any]]) -> None:
@@ -57,12 +60,24 @@ async def create_crack_survey(
             _check_photo(frame, photos[frame["name"]], camera)
 
     return await record_photo_job(
-        db, settings, queue, JobKind.crack_survey, options, config, {"": files}, check, attachments
+        db,
+        settings,
+        queue,
+        JobKind.crack_survey,
+        options,
+        config,
+        {"": files},
+        check,
+        attachments,
+        owner_id=owner.user_id if owner else None,
     )
 
 
-def with_calibration_camera(db: Database, settings: Settings, options: dict[str, Any]) -> dict[str, Any]:
-    """``options`` with ``camera`` taken from the finished calibration job ``options.calibration_job`` names."""
+def with_calibration_camera(
+    db: Database, settings: Settings, options: dict[str, Any], owner: Principal | None = None
+) -> dict[str, Any]:
+    """``options`` with ``camera`` taken from the finished calibration job ``options.calibration_job`` names
+    (one ``owner`` may see)."""
     job_id = options.get("calibration_job")
     if job_id is None:
         return options
@@ -72,7 +87,7 @@ def with_calibration_camera(db: Database, settings: Settings, options: dict[str,
         raise InvalidInputError(f"options.calibration_job: the id (an integer from 1 to {MAX_ID}) of a calibration job")
     with db.session() as s:
         job = s.get(Job, job_id)
-        if job is None or job.kind != JobKind.calibration:
+        if job is None or job.kind != JobKind.calibration or (owner is not None and not owner.may_see(job.owner_id)):
             raise InvalidInputError(f"options.calibration_job: there is no calibration job {job_id}")
         if job.status != JobStatus.succeeded:
             raise InvalidInputError(

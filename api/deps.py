@@ -33,4 +33,6 @@ QueueDep = Annotated[JobQueue, Depends(get_queue)]
 JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="the job's id")]
 FlightId = Annotated[int, Path(ge=1, le=MAX_ID, description="the flight's id")]
 FlightFilter = Annotated[int | None, Query(ge=1, le=MAX_ID, description="only the jobs of this flight")]
+TokenId = Annotated[int, Path(ge=1, le=MAX_ID, description="the token's id")]
+UserName = Annotated[str, Path(max_length=64, description="the user's name")]
 TileIndex = Annotated[int, Path(ge=-MAX_ID - 1, le=MAX_ID)]  # a zoom, column, row or load step

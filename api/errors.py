@@ -18,6 +18,7 @@ class ApiError(Exception):
     """An error the client can act on; subclasses fix the status code."""
 
     status_code = 400
+    headers: dict[str, str] | None = None
 
     def __init__(self, detail: str) -> None:
         super().__init__(detail)
@@ -51,7 +52,7 @@ class UnavailableError(ApiError):
 def install_error_handlers(app: FastAPI) -> None:
     async def handle(_request: Request, exc: Exception) -> JSONResponse:
         assert isinstance(exc, ApiError)
-        return JSONResponse({"detail": _encodable(exc.detail)}, status_code=exc.status_code)
+        return JSONResponse({"detail": _encodable(exc.detail)}, status_code=exc.status_code, headers=exc.headers)
 
     async def handle_invalid_request(_request: Request, exc: Exception) -> JSONResponse:
         """FastAPI's 422 (one entry per problem: loc, msg, type), with the refused ``input`` cut short."""

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from typing import Any
 
@@ -14,6 +15,7 @@ from api.errors import ConflictError, InvalidInputError, NotFoundError, Unavaila
 from api.gcp_service import gcp_file
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
+from core.accounts import Principal
 from core.db import Database, Flight, Job
 from core.kinds import JobStatus
 from core.settings import Settings
@@ -21,6 +23,8 @@ from workers.algorithms.geometry import Camera
 from workers.config import build_config
 from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import flight_folder, job_workspace
+
+log = logging.getLogger(__name__)
 
 
 def job_out(job: Job) -> JobOut:
@@ -65,16 +69,19 @@ def _option(loc: tuple[int | str, ...]) -> str:
     return ".".join(["options", *map(str, loc)])
 
 
-def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreate) -> JobOut:
+def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreate, owner: Principal) -> JobOut:
+    """Record a job on one of ``owner``'s flights (any flight for an admin) and queue it."""
     config = validated_config(body.kind, body.options)
     with db.session() as s:
         flight = s.get(Flight, body.flight_id)
-        if flight is None:
+        if flight is None or not owner.may_see(flight.owner_id):
             raise NotFoundError(f"flight {body.flight_id} not found")
         if len(flight.images) < 2:
             raise InvalidInputError(f"flight {flight.id} has {len(flight.images)} image(s); a mosaic needs at least 2")
         frames = [_frame_input(settings, flight.id, image) for image in flight.images]
-        job = Job(flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued)
+        job = Job(
+            flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued, owner_id=owner.user_id
+        )
         s.add(job)
         s.flush()
         ws = job_workspace(settings.data_dir, job.id)
@@ -107,8 +114,9 @@ def enqueue(db: Database, queue: JobQueue, job_id: int) -> JobOut:
     except Exception as exc:  # the broker is down: say so, and don't leave a job that never runs
         with db.session() as s:
             failed = job_or_404(s, job_id)
-            failed.status, failed.error = JobStatus.failed, f"could not reach the job queue: {exc}"
-        raise UnavailableError(f"the job queue is unavailable ({type(exc).__name__}); try again shortly") from None
+            failed.status, failed.error = JobStatus.failed, "could not reach the job queue; retry the job"
+        log.warning("job %s: could not reach the job queue: %s", job_id, exc)
+        raise UnavailableError("the job queue is unavailable; try again shortly") from None
     with db.session() as s:
         sent = job_or_404(s, job_id)
         sent.celery_id = chain_id
@@ -140,11 +148,14 @@ def job_with_warnings(db: Database, settings: Settings, job_id: int) -> JobOut:
     return job.model_copy(update={"warnings": [w for w in warnings if isinstance(w, str)]})
 
 
-def list_jobs(db: Database, flight_id: int | None) -> list[JobOut]:
+def list_jobs(db: Database, flight_id: int | None, owner_id: int | None) -> list[JobOut]:
+    """Jobs, newest first: of one flight, and of one owner, where given."""
     with db.session() as s:
         query = select(Job).order_by(Job.id.desc())
         if flight_id is not None:
             query = query.where(Job.flight_id == flight_id)
+        if owner_id is not None:
+            query = query.where(Job.owner_id == owner_id)
         return [job_out(j) for j in s.scalars(query)]
 
 
@@ -166,3 +177,26 @@ def cancel_job(db: Database, job_id: int) -> JobOut:
             raise ConflictError(f"job {job_id} is already {job.status}")
         job.status, job.progress_detail = JobStatus.cancelled, "cancelled by user"
         return job_out(job)
+
+
+def delete_job(db: Database, settings: Settings, job_id: int) -> None:
+    """Delete a job's record and files. A running stage stops at its next progress report (it finds no
+    record), and the rest of its chain never starts."""
+    with db.session() as s:
+        s.delete(job_or_404(s, job_id))
+    shutil.rmtree(job_workspace(settings.data_dir, job_id).root, ignore_errors=True)
+
+
+def delete_flight(db: Database, settings: Settings, flight_id: int) -> None:
+    """Delete a flight with its photos, ground control and jobs (running ones stop as ``delete_job`` says)."""
+    with db.session() as s:
+        flight = s.get(Flight, flight_id)
+        if flight is None:
+            raise NotFoundError(f"flight {flight_id} not found")
+        job_ids = list(s.scalars(select(Job.id).where(Job.flight_id == flight_id)))
+        for job in s.scalars(select(Job).where(Job.flight_id == flight_id)):
+            s.delete(job)
+        s.delete(flight)
+    for job_id in job_ids:
+        shutil.rmtree(job_workspace(settings.data_dir, job_id).root, ignore_errors=True)
+    shutil.rmtree(flight_folder(settings.data_dir, flight_id).parent, ignore_errors=True)  # photos and GCPs

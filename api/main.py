@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
+from api.auth import BearerForWrites, TrustedHosts, authorize
 from api.errors import install_error_handlers
-from api.limits import JsonBodyLimits
+from api.limits import JsonBodyLimits, RequestLimits
 from api.queue import CeleryQueue, JobQueue
-from api.routes import calibrations, crack_surveys, flights, jobs, tiles, web
+from api.reaper import lifespan
+from api.routes import calibrations, crack_surveys, flights, jobs, tiles, users, web
+from api.tiler import Tiler
+from core.accounts import TokenCache
 from core.db import Database
 from core.settings import Settings, get_settings
 
@@ -23,14 +28,30 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         docs_url=None,
         redoc_url=None,
         description="Upload drone flights, run mosaic jobs, view the result as XYZ tiles.",
+        lifespan=lifespan,  # the reaper: jobs whose worker died or whose next stage was lost are sent again
     )
     app.state.settings = settings
     app.state.db = Database(settings.resolved_database_url())
+    app.state.tokens = TokenCache(app.state.db)  # who a token is, remembered a few seconds
+    # open COGs and rendered tiles of this process; closed by the lifespan
+    app.state.tiler = Tiler(settings.tile_cache_bytes, settings.tile_open_cogs, settings.tile_readers_per_cog)
     app.state.queue = queue or CeleryQueue(settings.redis_url, settings.celery_queue)
     install_error_handlers(app)
     app.add_middleware(JsonBodyLimits)  # size, depth and numbers of a JSON body, before it is parsed
-    for module in (flights, jobs, calibrations, crack_surveys, tiles, web):
-        app.include_router(module.router)
+    app.add_middleware(RequestLimits, settings=settings)  # body, file and part sizes, counted as they stream
+    if settings.cors_origins:  # closed by default: the viewer is served from this origin
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "PUT", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
+    app.add_middleware(BearerForWrites)  # an anonymous write is refused before its body is read
+    app.add_middleware(TrustedHosts, allowed=settings.allowed_hosts)  # outermost: before anything is read
+    for module in (flights, jobs, calibrations, crack_surveys, tiles):
+        app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own
+    app.include_router(users.router)  # its routes say who may call them
+    app.include_router(web.router)  # viewer, health and configuration: open
     app.mount("/static", StaticFiles(directory=settings.web_dir), name="static")
     vendor = settings.web_dir / "node_modules"
     if (vendor / "leaflet").is_dir():

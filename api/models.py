@@ -90,6 +90,9 @@ class JobOut(BaseModel):
     # far from their GPS), from its report, so a client can refuse the result: a list (maybe empty) from
     # GET /api/jobs/{id} once the job has succeeded, null where it was not looked up (lists, other states)
     warnings: list[str] | None = None
+    # query string ``exp=...&sig=...`` that opens this job's tiles, downloads and event stream without a token
+    # (for image tags and EventSource, which cannot send one) until it expires; from GET /api/jobs/{id} only
+    signature: str | None = None
 
 
 class OutputOut(BaseModel):
@@ -124,3 +127,32 @@ class MeasureRequest(BaseModel):
     left: list[tuple[Pixel, Pixel]] = Field(min_length=1, max_length=200)  # pixel (x, y), left photo
     right: list[tuple[Pixel, Pixel]] = Field(min_length=1, max_length=200)  # same points, right photo
     perturb_px: float = Field(0.5, gt=0.0, le=10.0)  # marking accuracy used for the uncertainty, px
+
+
+class UserCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+    is_admin: bool = False
+    label: str = Field("", max_length=200)  # what the first token is for, e.g. "field laptop"
+
+
+class TokenOut(BaseModel):
+    id: int
+    user: str
+    prefix: str  # the token's first characters, to tell tokens apart; the secret is never shown again
+    label: str
+    created_at: datetime
+    last_used_at: datetime | None
+    revoked: bool
+
+
+class UserOut(BaseModel):
+    name: str
+    is_admin: bool
+    tokens: list[TokenOut]
+
+
+class TokenCreated(BaseModel):
+    user: str
+    token: str  # shown once: only its hash is stored

@@ -48,12 +48,15 @@ async def record_photo_job(
     groups: dict[str, list[UploadFile]],
     check: Callable[[list[dict[str, Any]]], None],
     attachments: dict[str, bytes] | None = None,
+    *,
+    owner_id: int | None = None,
 ) -> JobOut:
     """Stage and validate the photos, ``check`` their frames (raise ``InvalidInputError``), then record the
     job with its photos in its own folder and queue it; a failed request leaves nothing behind.
 
     Frames are ``{"name", "side", "pair", "width", "height"}``, and ``"path"`` once stored.
     ``attachments`` are other files of the job, already checked: path inside its folder -> content.
+    ``owner_id`` is the user the job belongs to.
     """
     staging = Path(settings.data_dir) / "incoming" / uuid.uuid4().hex
     try:
@@ -61,7 +64,7 @@ async def record_photo_job(
         frames = _frames(staged)
         check(frames)
         with db.session() as s:
-            job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued)
+            job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued, owner_id=owner_id)
             s.add(job)
             s.flush()
             _write_workspace(job_workspace(settings.data_dir, job.id), staged, frames, config, attachments or {})

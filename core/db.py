@@ -125,6 +125,7 @@ class Job(Base):
     celery_id: Mapped[str] = mapped_column(String(64), default="")
     heartbeat_at: Mapped[datetime | None] = mapped_column(nullable=True)  # last sign of life of its running stage
     deliveries: Mapped[int] = mapped_column(Integer, default=0)  # starts of the current stage, reset when it ends
+    heartbeat_by: Mapped[str] = mapped_column(String(200), default="")  # "host:pid" of the process running it
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
@@ -164,7 +165,8 @@ def _add_missing_columns(engine: Engine) -> None:
         with engine.begin() as conn:
             for column in missing:
                 kind = column.type.compile(dialect=engine.dialect)
-                default = column.default.arg if column.default is not None and column.default.is_scalar else None
+                default = getattr(column.default, "arg", None) if column.default is not None else None
+                default = None if callable(default) else default
                 fill = "" if default is None else f" NOT NULL DEFAULT {_sql_literal(default)}"
                 conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {column.name} {kind}{fill}"))
 

@@ -43,6 +43,26 @@ class Settings(BaseSettings):
     secret_key: str = ""  # signs tile and download URLs; empty: a random key kept in <data_dir>/secret_key
     signed_url_seconds: int = 12 * 3600  # how long a signed tile or download URL stays valid
 
+    # -- Tiles -----------------------------------------------------------------------------------
+    tile_cache_bytes: int = Field(default=256 * 1024 * 1024, ge=0)  # rendered tiles kept per process; 0: none
+    tile_open_cogs: int = Field(default=32, ge=0)  # COGs kept open per process (LRU); 0: open one per request
+    tile_readers_per_cog: int = Field(default=4, ge=1, le=64)  # handles of one open COG, one thread each
+    tile_max_age_seconds: int = Field(default=3600, ge=0)  # browser reuse of a succeeded job's tile, s
+
+    # -- Request limits --------------------------------------------------------------------------
+    max_request_bytes: int = Field(default=2 * 1024**3, ge=1)  # one upload request, all its files; more: 413 unread
+    max_files_per_request: int = Field(default=500, ge=1)  # parts (files and fields) of one multipart request
+    max_mesh_bytes: int = Field(default=64 * 1024 * 1024, ge=1)  # a crack survey's mesh file (OBJ, PLY, STL)
+    image_decode_budget_bytes: int = Field(default=1024**3, ge=1)  # pixels that full decodes (TIFF) hold at once
+
+    # -- Liveness --------------------------------------------------------------------------------
+    heartbeat_seconds: float = Field(default=10.0, gt=0)  # how often a running stage stamps its job's record
+    stale_seconds: float = Field(default=60.0, gt=0)  # a stage silent this long is dead; a waiting job, lost
+    reaper_seconds: float = Field(default=15.0, ge=0)  # how often the API looks for dead or lost jobs; 0: never
+    max_deliveries: int = Field(default=3, ge=1, le=100)  # starts of one stage whose process died, then: failed
+    stage_time_limit_seconds: int = Field(default=24 * 3600, ge=60)  # longest one stage may run, s (soft limit)
+    worker_beacon_seconds: float = Field(default=10.0, gt=0)  # how often a worker says it is alive, in Redis
+
     def resolved_database_url(self) -> str:
         if self.database_url:
             return self.database_url

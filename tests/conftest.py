@@ -12,8 +12,10 @@ import tempfile
 import time
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -50,7 +52,12 @@ def api_settings(request: pytest.FixtureRequest, tmp_path: Path):
     from core.settings import Settings
 
     url = fresh_database(request.getfixturevalue("postgres_base_url")) if request.param == "postgresql" else ""
-    return Settings(data_dir=tmp_path / "data", database_url=url, redis_url="redis://127.0.0.1:1/0")
+    return Settings(
+        data_dir=tmp_path / "data",
+        database_url=url,
+        redis_url="redis://127.0.0.1:1/0",
+        allowed_hosts=["testserver", "127.0.0.1", "localhost"],  # TestClient sends Host: testserver
+    )
 
 
 @pytest.fixture(scope="session")
@@ -121,12 +128,32 @@ def recording_queue() -> RecordingQueue:
 
 @pytest.fixture
 def client(api_settings, recording_queue):
+    """A TestClient of the app that sends an admin's token (``client.headers``); see ``user_headers``."""
+    with admin_client(api_settings, recording_queue) as test_client:
+        yield test_client
+
+
+@contextmanager
+def admin_client(settings, queue) -> Iterator[Any]:
+    """A TestClient of ``create_app(settings, queue)`` (Host ``testserver`` allowed) with a new admin's token."""
     from fastapi.testclient import TestClient
 
     from api.main import create_app
+    from core import accounts
 
-    with TestClient(create_app(api_settings, queue=recording_queue)) as test_client:
+    if "testserver" not in settings.allowed_hosts:  # in place: tests change their settings object later
+        settings.allowed_hosts = [*settings.allowed_hosts, "testserver"]
+    app = create_app(settings, queue=queue)
+    token = accounts.create_user(app.state.db, "admin", admin=True)
+    with TestClient(app, headers={"Authorization": f"Bearer {token}"}) as test_client:
         yield test_client
+
+
+def user_headers(client, name: str, *, admin: bool = False) -> dict[str, str]:
+    """Headers with the token of a new user ``name`` of ``client``'s app."""
+    from core import accounts
+
+    return {"Authorization": f"Bearer {accounts.create_user(client.app.state.db, name, admin=admin)}"}
 
 
 def free_port() -> int:
@@ -141,11 +168,20 @@ class LiveService:
     data_dir: Path
     redis_url: str
     logs: Path
+    token: str  # an admin's
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"}
+
+    def client(self, timeout: float = 60.0) -> httpx.Client:
+        """An HTTP client of the service that sends the admin's token."""
+        return httpx.Client(base_url=self.url, headers=self.headers, timeout=timeout)
 
     def wait_for_job(self, job_id: int, timeout: float = 240.0) -> dict:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            job = httpx.get(f"{self.url}/api/jobs/{job_id}", timeout=10).json()
+            job = httpx.get(f"{self.url}/api/jobs/{job_id}", headers=self.headers, timeout=10).json()
             if job["status"] in ("succeeded", "failed", "cancelled"):
                 return job
             time.sleep(0.5)
@@ -176,6 +212,7 @@ def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServi
     env.pop("DATABASE_URL", None)
     env.pop("REDIS_URL", None)
     port = free_port()
+    token = make_token(env, "admin", admin=True)
     procs: list[subprocess.Popen[bytes] | None] = [start_redis(redis_url, root / "redis")]
     try:
         procs.append(
@@ -217,9 +254,16 @@ def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServi
         )
         procs.append(server)
         wait_for_port("127.0.0.1", port, 60, server)
-        yield LiveService(f"http://127.0.0.1:{port}", data_dir, redis_url, logs)
+        yield LiveService(f"http://127.0.0.1:{port}", data_dir, redis_url, logs, token)
     finally:
         stop(list(reversed(procs)))
+
+
+def make_token(env: dict[str, str], name: str, *, admin: bool = False) -> str:
+    """A new user's token from ``fotoskhema users create``, on the database of ``env``."""
+    cmd = [sys.executable, "-m", "api.cli", "users", "create", name, *(["--admin"] if admin else [])]
+    done = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, check=True)
+    return done.stdout.strip()
 
 
 def _spawn(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:

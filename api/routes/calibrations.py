@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, File, Form, UploadFile
 
 from api import calibration_service as service
+from api.auth import UserDep
 from api.deps import DbDep, JobId, QueueDep, SettingsDep
 from api.models import JobOut, JobResultOut, MarksUpdate, MeasureRequest
 from api.photo_jobs import parse_options
@@ -18,6 +19,7 @@ OPTIONS_HELP = 'JSON object of options (see CalibrationConfig / StereoCalibratio
 
 @router.post("/calibrations", status_code=202, response_model=JobOut)
 async def create_calibration(
+    principal: UserDep,
     db: DbDep,
     settings: SettingsDep,
     queue: QueueDep,
@@ -26,7 +28,7 @@ async def create_calibration(
 ) -> JobOut:
     """Calibrate one camera: chessboard photos (corners found automatically), hand marks, or plumb lines."""
     return await service.create_calibration(
-        db, settings, queue, JobKind.calibration, {"": files}, parse_options(options)
+        db, settings, queue, JobKind.calibration, {"": files}, parse_options(options), owner=principal
     )
 
 
@@ -44,6 +46,7 @@ def replace_markers(job_id: JobId, body: MarksUpdate, db: DbDep, settings: Setti
 
 @router.post("/stereo-rigs", status_code=202, response_model=JobOut)
 async def create_stereo_rig(
+    principal: UserDep,
     db: DbDep,
     settings: SettingsDep,
     queue: QueueDep,
@@ -53,7 +56,13 @@ async def create_stereo_rig(
 ) -> JobOut:
     """Calibrate a two-camera rig from paired chessboard photos: rotation, baseline, RMS."""
     return await service.create_calibration(
-        db, settings, queue, JobKind.stereo_calibration, {"left": left, "right": right}, parse_options(options)
+        db,
+        settings,
+        queue,
+        JobKind.stereo_calibration,
+        {"left": left, "right": right},
+        parse_options(options),
+        owner=principal,
     )
 
 

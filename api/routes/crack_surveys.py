@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, File, Form, UploadFile
 
 from api import crack_survey_service as service
+from api.auth import UserDep
 from api.deps import DbDep, JobId, QueueDep, SettingsDep
 from api.models import JobOut, JobResultOut
 from api.photo_jobs import parse_options
@@ -22,6 +23,7 @@ MODEL_HELP = "the specimen's triangle mesh in mm (OBJ, PLY or STL) when options.
 
 @router.post("/crack-surveys", status_code=202, response_model=JobOut)
 async def create_crack_survey(
+    principal: UserDep,
     db: DbDep,
     settings: SettingsDep,
     queue: QueueDep,
@@ -30,7 +32,7 @@ async def create_crack_survey(
     model: UploadFile | None = File(default=None, description=MODEL_HELP),
 ) -> JobOut:
     """Measure the cracks of a specimen at each load stage and compare consecutive stages."""
-    return await service.create_crack_survey(db, settings, queue, files, parse_options(options), model)
+    return await service.create_crack_survey(db, settings, queue, files, parse_options(options), model, owner=principal)
 
 
 @router.get("/crack-surveys/{job_id}", response_model=JobResultOut)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, File, UploadFile
+from fastapi import APIRouter, File, Response, UploadFile
 from sqlalchemy import func, select
 
+from api import job_service
+from api.auth import UserDep, Viewer, owner_filter
 from api.deps import DbDep, FlightId, SettingsDep
 from api.errors import NotFoundError
 from api.gcp_service import MAX_GCP_BYTES, store_gcps
@@ -41,23 +43,27 @@ def flight_out(flight: Flight, image_count: int) -> FlightOut:
 
 
 @router.post("", status_code=201, response_model=FlightOut)
-def create_flight(body: FlightCreate, db: DbDep) -> FlightOut:
+def create_flight(body: FlightCreate, principal: UserDep, db: DbDep) -> FlightOut:
     with db.session() as s:
-        flight = Flight(name=body.name.strip() or "flight", description=body.description)
+        flight = Flight(name=body.name.strip() or "flight", description=body.description, owner_id=principal.user_id)
         s.add(flight)
         s.flush()
         return flight_out(flight, 0)
 
 
 @router.get("", response_model=list[FlightOut])
-def list_flights(db: DbDep) -> list[FlightOut]:
+def list_flights(viewer: Viewer, db: DbDep) -> list[FlightOut]:
+    """Your flights (every flight for an admin), newest first."""
     with db.session() as s:
         counts = select(Image.flight_id, func.count().label("n")).group_by(Image.flight_id).subquery()
-        rows = s.execute(
+        query = (
             select(Flight, func.coalesce(counts.c.n, 0))
             .outerjoin(counts, counts.c.flight_id == Flight.id)
             .order_by(Flight.id.desc())
         )
+        if (owner_id := owner_filter(viewer)) is not None:
+            query = query.where(Flight.owner_id == owner_id)
+        rows = s.execute(query)
         return [flight_out(f, n) for f, n in rows]
 
 
@@ -69,6 +75,13 @@ def get_flight(flight_id: FlightId, db: DbDep) -> FlightDetail:
             raise NotFoundError(f"flight {flight_id} not found")
         images = [image_out(i) for i in flight.images]
         return FlightDetail(**flight_out(flight, len(images)).model_dump(), images=images)
+
+
+@router.delete("/{flight_id}", status_code=204)
+def delete_flight(flight_id: FlightId, db: DbDep, settings: SettingsDep) -> Response:
+    """Delete the flight with its photos, ground control points and jobs (running ones stop)."""
+    job_service.delete_flight(db, settings, flight_id)
+    return Response(status_code=204)
 
 
 @router.post("/{flight_id}/images", status_code=201, response_model=UploadResult)

@@ -5,10 +5,11 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Request, Response
 from fastapi.responses import FileResponse, StreamingResponse
 
 from api import job_service
+from api.auth import UserDep, Viewer, job_signature, owner_filter
 from api.deps import DbDep, FlightFilter, JobId, QueueDep, SettingsDep
 from api.errors import NotFoundError
 from api.models import JobCreate, JobOut, OutputOut, OutputsOut
@@ -27,20 +28,30 @@ MEDIA_TYPES = {
 
 
 @router.post("", status_code=202, response_model=JobOut)
-def create_job(body: JobCreate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
+def create_job(body: JobCreate, principal: UserDep, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
     """Queue a job on a flight; ``options`` override the pipeline defaults (see the MosaicConfig schema)."""
-    return job_service.create_job(db, settings, queue, body)
+    return job_service.create_job(db, settings, queue, body, principal)
 
 
 @router.get("", response_model=list[JobOut])
-def list_jobs(db: DbDep, flight_id: FlightFilter = None) -> list[JobOut]:
-    return job_service.list_jobs(db, flight_id)
+def list_jobs(viewer: Viewer, db: DbDep, flight_id: FlightFilter = None) -> list[JobOut]:
+    """Your jobs (every job for an admin), newest first."""
+    return job_service.list_jobs(db, flight_id, owner_filter(viewer))
 
 
 @router.get("/{job_id}", response_model=JobOut)
 def get_job(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobOut:
-    """The job's status, progress and, once it has succeeded, the warnings of its report."""
-    return job_service.job_with_warnings(db, settings, job_id)
+    """The job's status, progress, a ``signature`` for its tile, download and event URLs and, once it has
+    succeeded, the warnings of its report."""
+    job = job_service.job_with_warnings(db, settings, job_id)
+    return job.model_copy(update={"signature": job_signature(settings, job_id, job.created_at)})
+
+
+@router.delete("/{job_id}", status_code=204)
+def delete_job(job_id: JobId, db: DbDep, settings: SettingsDep) -> Response:
+    """Delete the job and its files; a running job stops at its next progress report."""
+    job_service.delete_job(db, settings, job_id)
+    return Response(status_code=204)
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut)
@@ -80,14 +91,15 @@ async def job_events(job_id: JobId, request: Request, db: DbDep, settings: Setti
 
 @router.get("/{job_id}/outputs", response_model=OutputsOut)
 def list_outputs(job_id: JobId, request: Request, db: DbDep, settings: SettingsDep) -> OutputsOut:
-    job_service.get_job(db, job_id)
+    job = job_service.get_job(db, job_id)
     outputs = job_workspace(settings.data_dir, job_id).outputs()
+    signature = job_signature(settings, job_id, job.created_at)  # a link opens without a token, for a while
     return OutputsOut(
         outputs=[
             OutputOut(
                 name=name,
                 size_bytes=path.stat().st_size,
-                url=str(request.url_for("download_output", job_id=job_id, name=name)),
+                url=f"{request.url_for('download_output', job_id=job_id, name=name)}?{signature}",
             )
             for name, path in outputs.items()
         ]

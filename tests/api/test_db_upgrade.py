@@ -52,3 +52,33 @@ def test_old_database_accepts_calibration_jobs_and_keeps_its_records(api_setting
         assert kept.flight_id == flight_id and kept.timings == {"load_images": 1.5} and kept.status == "succeeded"
         assert jobs[new_id].flight_id is None and jobs[new_id].kind == "calibration"
     Database(url)  # a second start finds nothing to upgrade
+
+
+def test_database_from_before_accounts_gets_the_new_columns_and_keeps_its_rows(api_settings) -> None:
+    from sqlalchemy import Column, Table, inspect
+
+    url = api_settings.resolved_database_url()
+    api_settings.data_dir.mkdir(parents=True, exist_ok=True)
+    new_columns = {"flights": {"owner_id"}, "jobs": {"owner_id", "heartbeat_at", "deliveries"}}
+    old = MetaData()
+    for table in Base.metadata.sorted_tables:
+        if table.name in ("users", "api_tokens"):
+            continue
+        keep = [c for c in table.columns if c.name not in new_columns.get(table.name, set())]
+        Table(table.name, old, *(Column(c.name, c.type, primary_key=c.primary_key) for c in keep))
+    engine = create_engine(url)
+    old.create_all(engine)
+    with engine.begin() as conn:
+        conn.execute(old.tables["flights"].insert().values(id=7, name="park", description="", created_at=utcnow()))
+        conn.execute(
+            old.tables["jobs"].insert().values(id=3, flight_id=7, kind="mosaic", status="succeeded", options={})
+        )
+    engine.dispose()
+
+    db = Database(url)
+    columns = {t: {c["name"] for c in inspect(db.engine).get_columns(t)} for t in new_columns}
+    assert all(new_columns[t] <= columns[t] for t in new_columns)
+    with db.session() as s:
+        job = s.get(Job, 3)
+        assert job is not None and job.owner_id is None and job.deliveries == 0 and job.status == "succeeded"
+    Database(url)  # a second start finds nothing to upgrade

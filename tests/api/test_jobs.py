@@ -145,7 +145,9 @@ def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_se
     assert cog.status_code == 200 and cog.content[:4] in (b"II*\x00", b"II+\x00")
     assert client.get(f"/api/jobs/{job['id']}/outputs/config.json").status_code == 404  # only named outputs
     tilejson = client.get(f"/tiles/{job['id']}/tilejson.json").json()
-    assert tilejson["georeferenced"] and tilejson["tiles"][0].endswith(f"/tiles/{job['id']}/{{z}}/{{x}}/{{y}}.png")
+    template, _, signature = tilejson["tiles"][0].partition("?")
+    assert tilejson["georeferenced"] and template.endswith(f"/tiles/{job['id']}/{{z}}/{{x}}/{{y}}.png")
+    assert "sig=" in signature
 
 
 def test_worker_skips_a_cancelled_job(client: TestClient, api_settings, frames: list[Path]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -11,13 +12,19 @@ from workers.config import CrackSurveyConfig
 from workers.pipeline import PipelineError
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
+log = logging.getLogger(__name__)
+
 
 def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write ``cracks/stage_NN_mask.npy`` per load step: (H, W) bool crack pixels inside what the photos see."""
     try:
         model = load_crack_model()
     except (OSError, ValueError) as exc:
-        raise PipelineError(f"the crack detector's weights cannot be used: {exc}") from None
+        # the reason (with the weights' path) is for the worker's log; the user can only ask ops to fix it
+        log.error("crack detector weights unusable: %s", exc)
+        raise PipelineError(
+            "the crack detector's weights cannot be used; ask the operators to reinstall them"
+        ) from None
     low = model.low if cfg.threshold_low is None else cfg.threshold_low
     high = model.high if cfg.threshold_high is None else cfg.threshold_high
     if low > high:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -89,5 +90,5 @@ def _check_size(width_mm: float, height_mm: float, mm_per_px: float) -> None:
 def _read(path: str) -> np.ndarray:
     image = cv2.imread(path, cv2.IMREAD_COLOR)
     if image is None:
-        raise PipelineError(f"{path}: the photo could not be decoded")
+        raise PipelineError(f"{Path(path).name}: the photo could not be decoded")
     return image
