@@ -9,6 +9,7 @@ A job or flight named in the path that the user may not see answers 404, as if i
 
 from __future__ import annotations
 
+import asyncio
 from datetime import datetime
 from typing import Annotated
 from urllib.parse import urlencode
@@ -16,6 +17,7 @@ from urllib.parse import urlencode
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import TypeAdapter, ValidationError
 from sqlalchemy import select
 from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -28,6 +30,11 @@ from core.db import Database, Flight, Job
 from core.settings import Settings
 
 READ_METHODS = frozenset({"GET", "HEAD"})
+# The reads a signed URL opens: what image tags, links and EventSource fetch. Not the job's JSON, its outputs
+# listing or its TileJSON, which hand out fresh signatures: those need the token, so a signed link cannot
+# renew itself past its expiry or its owner's revoked token.
+SIGNED_ROUTES = frozenset({"tile", "load_step_tile", "stage_tile", "download_output", "job_events"})
+_AS_INT = TypeAdapter(int)
 
 
 class UnauthorizedError(ApiError):
@@ -75,7 +82,8 @@ def authorize(
     read = request.method in READ_METHODS
     job_id = _path_id(request, "job_id")
     if principal is None:
-        if read and job_id is not None and _signed_for(request, db, settings, job_id):
+        signable = read and job_id is not None and _route_name(request) in SIGNED_ROUTES
+        if signable and job_id is not None and _signed_for(request, db, settings, job_id):
             return
         if read and settings.public_read:
             return
@@ -132,11 +140,20 @@ def _signed_for(request: Request, db: Database, settings: Settings, job_id: int)
 
 
 def _path_id(request: Request, name: str) -> int | None:
+    """The path parameter ``name`` read as the route reads it (pydantic's lax int: "5.0", " 5", "+5" are 5),
+    so that no spelling of an id the route accepts escapes the owner check."""
     raw = request.path_params.get(name)
+    if raw is None:
+        return None
     try:
-        return int(raw) if raw is not None else None
-    except (TypeError, ValueError):
+        return _AS_INT.validate_python(raw)
+    except ValidationError:
         return None  # the route's own validation answers 422
+
+
+def _route_name(request: Request) -> str:
+    route = request.scope.get("route")
+    return str(getattr(route, "name", ""))
 
 
 def _check_owner(
@@ -173,21 +190,28 @@ class TrustedHosts:
 
 
 class BearerForWrites:
-    """Answer 401 at once to a write (POST, PUT, DELETE, ...) under /api or /tiles that sends no bearer token,
-    before its body is read: an anonymous client cannot make the server spool an upload. The token's
-    validity and the owner checks are ``authorize``'s."""
+    """Answer 401 at once to a write (POST, PUT, DELETE, ...) under /api or /tiles without a valid bearer
+    token, before its body is read: a client without one cannot make the server spool an upload (FastAPI
+    reads a form before it runs the route's dependencies). The owner checks are ``authorize``'s."""
 
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
+    def __init__(self, app: ASGIApp, tokens: accounts.TokenCache) -> None:
+        self.app, self.tokens = app, tokens
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if (
             scope["type"] == "http"
             and scope["method"] not in READ_METHODS | {"OPTIONS"}
             and scope["path"].startswith(("/api/", "/tiles/"))
-            and not Headers(scope=scope).get("authorization", "").lower().startswith("bearer ")
         ):
-            detail = "this needs an API token: send 'Authorization: Bearer <token>'"
+            scheme, _, token = Headers(scope=scope).get("authorization", "").partition(" ")
+            token = token.strip()
+            if scheme.lower() != "bearer" or not token:
+                detail = "this needs an API token: send 'Authorization: Bearer <token>'"
+            elif await asyncio.to_thread(self.tokens.authenticate, token) is None:
+                detail = "the API token is unknown or revoked; sign in again with a valid token"
+            else:
+                await self.app(scope, receive, send)
+                return
             response = JSONResponse({"detail": detail}, status_code=401, headers=UnauthorizedError.headers)
             await response(scope, receive, send)
             return

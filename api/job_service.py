@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+from datetime import timedelta
 from typing import Any
 
 from pydantic import ValidationError
@@ -16,7 +17,7 @@ from api.gcp_service import gcp_file
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
 from core.accounts import Principal
-from core.db import Database, Flight, Job
+from core.db import Database, Flight, Job, utcnow
 from core.kinds import JobStatus
 from core.settings import Settings
 from workers.algorithms.geometry import Camera
@@ -159,12 +160,18 @@ def list_jobs(db: Database, flight_id: int | None, owner_id: int | None) -> list
         return [job_out(j) for j in s.scalars(query)]
 
 
-def retry_job(db: Database, queue: JobQueue, job_id: int) -> JobOut:
-    """Queue a failed or cancelled job again; stages that finished are skipped, so it resumes where it stopped."""
+def retry_job(db: Database, settings: Settings, queue: JobQueue, job_id: int) -> JobOut:
+    """Queue a failed or cancelled job again; stages that finished are skipped, so it resumes where it stopped.
+    Not while the stage of a cancelled job is still stopping: the retry would run it beside itself."""
     with db.session() as s:
         job = job_or_404(s, job_id)
         if job.status not in (JobStatus.failed, JobStatus.cancelled):
             raise ConflictError(f"job {job_id} is {job.status}; only a failed or cancelled job can be retried")
+        beat = job.heartbeat_at
+        if beat is not None and utcnow() - beat < timedelta(seconds=settings.stale_seconds):
+            raise ConflictError(
+                f"job {job_id}'s {job.stage} stage is still stopping (at its next progress report); retry shortly"
+            )
         job.status, job.error, job.progress_detail = JobStatus.queued, "", "retrying"
     return enqueue(db, queue, job_id)
 

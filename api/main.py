@@ -46,7 +46,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
             allow_methods=["GET", "POST", "PUT", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
         )
-    app.add_middleware(BearerForWrites)  # an anonymous write is refused before its body is read
+    app.add_middleware(
+        BearerForWrites, tokens=app.state.tokens
+    )  # an anonymous write is refused before its body is read
     app.add_middleware(TrustedHosts, allowed=settings.allowed_hosts)  # outermost: before anything is read
     for module in (flights, jobs, calibrations, crack_surveys, tiles):
         app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own

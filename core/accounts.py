@@ -226,7 +226,7 @@ def sign(key: bytes, scope: str, valid_seconds: int, now: float | None = None) -
 
 
 def signature_valid(key: bytes, scope: str, exp: str, sig: str, now: float | None = None) -> bool:
-    if not exp.isdigit() or len(exp) > 12 or len(sig) > 128:
+    if not (exp.isascii() and exp.isdigit()) or len(exp) > 12 or not sig.isascii() or len(sig) > 128:
         return False
     now = time.time() if now is None else now
     return int(exp) > now and hmac.compare_digest(_mac(key, scope, int(exp)), sig)

@@ -78,6 +78,9 @@ class ApiToken(Base):
 
 class Flight(Base):
     __tablename__ = "flights"
+    # ids are never given again (SQLite would reuse a deleted last one): a job's files, signed URLs and running
+    # stages are keyed by them
+    __table_args__ = {"sqlite_autoincrement": True}
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     # who made it; None for flights made before accounts, which only admins see
@@ -108,6 +111,7 @@ class Image(Base):
 
 class Job(Base):
     __tablename__ = "jobs"
+    __table_args__ = {"sqlite_autoincrement": True}  # as for flights
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     # None for calibration jobs, whose photos are stored in the job's own folder
@@ -145,6 +149,7 @@ class Database:
         Base.metadata.create_all(self.engine)
         _add_missing_columns(self.engine)
         _allow_jobs_without_flight(self.engine)
+        _never_reuse_ids(self.engine)
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -169,6 +174,43 @@ def _add_missing_columns(engine: Engine) -> None:
                 default = None if callable(default) else default
                 fill = "" if default is None else f" NOT NULL DEFAULT {_sql_literal(default)}"
                 conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {column.name} {kind}{fill}"))
+
+
+def _never_reuse_ids(engine: Engine) -> None:
+    """Upgrade a SQLite database made before ids were AUTOINCREMENT: rebuild ``flights`` and ``jobs`` with it,
+    keeping every row and id. Foreign keys are off meanwhile and references are not rewritten by the rename
+    (``legacy_alter_table``), so ``images`` and ``jobs`` point at the rebuilt ``flights``."""
+    if engine.dialect.name != "sqlite":
+        return
+    for table in (Flight.__table__, Job.__table__):
+        with engine.connect() as conn:
+            ddl = conn.scalar(text("SELECT sql FROM sqlite_master WHERE type='table' AND name=:n"), {"n": table.name})
+        if ddl is None or "AUTOINCREMENT" in ddl.upper():
+            continue
+        with engine.connect() as conn:
+            conn.exec_driver_sql("PRAGMA foreign_keys=OFF")
+            conn.exec_driver_sql("PRAGMA legacy_alter_table=ON")
+            conn.commit()
+            try:
+                _rebuild(conn, table)  # type: ignore[arg-type]
+                conn.commit()
+            finally:
+                conn.rollback()
+                conn.exec_driver_sql("PRAGMA legacy_alter_table=OFF")
+                conn.exec_driver_sql("PRAGMA foreign_keys=ON")
+                conn.commit()
+
+
+def _rebuild(conn: Any, table: Any) -> None:
+    """Make ``table`` again from the model, with its rows (in the caller's transaction)."""
+    old = f"{table.name}_before_upgrade"
+    conn.execute(text(f"ALTER TABLE {table.name} RENAME TO {old}"))
+    for index in table.indexes:
+        conn.execute(text(f"DROP INDEX IF EXISTS {index.name}"))
+    table.create(conn)
+    names = ", ".join(c.name for c in table.columns)
+    conn.execute(text(f"INSERT INTO {table.name} ({names}) SELECT {names} FROM {old}"))
+    conn.execute(text(f"DROP TABLE {old}"))
 
 
 def _sql_literal(value: Any) -> str:

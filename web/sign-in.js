@@ -6,7 +6,10 @@
  * GET /api/me before it is kept. The user's name is the server's, but it is still set as text.
  */
 
-import { ApiError, api, h, messageOf, storeToken } from "./lib.js";
+import { ApiError, api, h, messageOf, storeToken, storedToken } from "./lib.js";
+
+const SWITCH_QUESTION = "This link signs in with another API token, possibly another user's account: "
+  + "what you do next would be done as that user. Sign in with the link's token?";
 
 /**
  * A sign-in link carries the token in the URL's fragment (`#token=fsk_...`, or `#/jobs/7?token=fsk_...` to
@@ -25,8 +28,13 @@ export function takeTokenFromUrl() {
   const rest = params.toString();
   const hash = `#${fragment.slice(0, cut) || "/"}${rest ? `?${rest}` : ""}`;
   window.history.replaceState(window.history.state, "", `${window.location.pathname}${window.location.search}${hash}`);
-  if (token) storeToken(token);
-  return Boolean(token);
+  if (!token) return false;
+  // A link sent by someone else must not silently sign this tab into their account (whatever is uploaded
+  // next would be theirs to read): replacing the token in use needs the user's yes.
+  const current = storedToken();
+  if (current && current !== token && !window.confirm(SWITCH_QUESTION)) return false;
+  storeToken(token);
+  return true;
 }
 
 /**

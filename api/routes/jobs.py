@@ -60,9 +60,9 @@ def cancel_job(job_id: JobId, db: DbDep) -> JobOut:
 
 
 @router.post("/{job_id}/retry", status_code=202, response_model=JobOut)
-def retry_job(job_id: JobId, db: DbDep, queue: QueueDep) -> JobOut:
+def retry_job(job_id: JobId, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
     """Run a failed or cancelled job again from the stage where it stopped."""
-    return job_service.retry_job(db, queue, job_id)
+    return job_service.retry_job(db, settings, queue, job_id)
 
 
 @router.get("/{job_id}/events")

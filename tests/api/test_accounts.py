@@ -76,12 +76,13 @@ def test_an_anonymous_upload_is_refused_before_its_body_is_read(client: TestClie
         yield b"--x\r\n"
         raise AssertionError("the server read the body of an anonymous write")
 
-    response = client.post(
-        f"/api/flights/{flight}/images",
-        content=body(),
-        headers={"Authorization": "", "Content-Type": "multipart/form-data; boundary=x"},
-    )
-    assert response.status_code == 401
+    for authorization in ("", "Bearer fsk_made-up", "Basic YTpi"):
+        response = client.post(
+            f"/api/flights/{flight}/images",
+            content=body(),
+            headers={"Authorization": authorization, "Content-Type": "multipart/form-data; boundary=x"},
+        )
+        assert response.status_code == 401, authorization
 
 
 def test_users_see_only_their_own_flights_and_jobs(client: TestClient) -> None:
@@ -142,20 +143,41 @@ def test_a_signed_url_opens_one_jobs_reads_until_it_expires(client: TestClient, 
     _, other = _flight_with_job(client)
     signature = client.get(f"/api/jobs/{job}").json()["signature"]
     anonymous = {"Authorization": ""}
-    assert client.get(f"/api/jobs/{job}?{signature}", headers=anonymous).status_code == 200
-    assert client.get(f"/api/jobs/{job}/outputs?{signature}", headers=anonymous).status_code == 200
-    assert client.get(f"/api/jobs/{other}?{signature}", headers=anonymous).status_code == 401  # another job
+    download = f"/api/jobs/{job}/outputs/mosaic.tif"  # a queued job has none: 404 once let in
+    opened = client.get(f"{download}?{signature}", headers=anonymous)
+    assert opened.status_code == 404 and "no output named" in opened.json()["detail"]
+    assert client.get(download, headers=anonymous).status_code == 401
+    assert client.get(f"/tiles/{job}/0/0/0.png?{signature}", headers=anonymous).status_code == 409  # no mosaic yet
+    assert client.get(f"/api/jobs/{other}/outputs/mosaic.tif?{signature}", headers=anonymous).status_code == 401
     tampered = signature[:-1] + ("0" if signature[-1] != "0" else "1")
-    assert client.get(f"/api/jobs/{job}?{tampered}", headers=anonymous).status_code == 401
+    assert client.get(f"{download}?{tampered}", headers=anonymous).status_code == 401
     assert client.post(f"/api/jobs/{job}/cancel?{signature}", headers=anonymous).status_code == 401  # reads only
+    # what hands out signatures needs the token, so a signed link cannot renew itself
+    for renewing in (f"/api/jobs/{job}", f"/api/jobs/{job}/outputs", f"/tiles/{job}/tilejson.json"):
+        assert client.get(f"{renewing}?{signature}", headers=anonymous).status_code == 401, renewing
     key = accounts.signing_key("", api_settings.data_dir)
     with client.app.state.db.session() as s:  # type: ignore[attr-defined]
         created_at = s.get(Job, job).created_at
     scope = accounts.job_scope(job, created_at)
     expired = accounts.sign(key, scope, 60, now=0.0)
-    response = client.get(f"/api/jobs/{job}", params=expired, headers=anonymous)
+    response = client.get(download, params=expired, headers=anonymous)
     assert response.status_code == 401 and "expired" in response.json()["detail"]
+    for odd in ({"exp": "\u00b2", "sig": "a"}, {"exp": "9999999999", "sig": "\u00e9" * 43}):
+        assert client.get(download, params=odd, headers=anonymous).status_code == 401
     assert stat.S_IMODE(os.stat(api_settings.data_dir / "secret_key").st_mode) == 0o600
+
+
+def test_no_spelling_of_an_id_escapes_the_owner_check(client: TestClient) -> None:
+    alice, bob = user_headers(client, "alice"), user_headers(client, "bob")
+    flight, job = _flight_with_job(client, alice)
+    for spelling in (f"{flight}.0", f"+{flight}", f"%20{flight}", f"{flight}%20"):
+        assert client.get(f"/api/flights/{spelling}", headers=bob).status_code in (404, 422), spelling
+        assert client.delete(f"/api/flights/{spelling}", headers=bob).status_code in (404, 422), spelling
+    for spelling in (f"{job}.0", f"+{job}"):
+        assert client.get(f"/api/jobs/{spelling}", headers=bob).status_code in (404, 422), spelling
+        assert client.get(f"/tiles/{spelling}/tilejson.json", headers=bob).status_code in (404, 422), spelling
+    assert len(client.get(f"/api/flights/{flight}", headers=alice).json()["images"]) == 2
+    assert client.get(f"/api/jobs/{job}", headers=alice).status_code == 200
 
 
 def test_a_deleted_jobs_signature_does_not_open_the_job_that_reuses_its_id(client: TestClient) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from sqlalchemy import MetaData, create_engine, select
 
-from core.db import Base, Database, Job, utcnow
+from core.db import Base, Database, Flight, Image, Job, utcnow
 
 
 def test_old_database_accepts_calibration_jobs_and_keeps_its_records(api_settings) -> None:
@@ -59,7 +59,7 @@ def test_database_from_before_accounts_gets_the_new_columns_and_keeps_its_rows(a
 
     url = api_settings.resolved_database_url()
     api_settings.data_dir.mkdir(parents=True, exist_ok=True)
-    new_columns = {"flights": {"owner_id"}, "jobs": {"owner_id", "heartbeat_at", "deliveries"}}
+    new_columns = {"flights": {"owner_id"}, "jobs": {"owner_id", "heartbeat_at", "deliveries", "heartbeat_by"}}
     old = MetaData()
     for table in Base.metadata.sorted_tables:
         if table.name in ("users", "api_tokens"):
@@ -71,7 +71,23 @@ def test_database_from_before_accounts_gets_the_new_columns_and_keeps_its_rows(a
     with engine.begin() as conn:
         conn.execute(old.tables["flights"].insert().values(id=7, name="park", description="", created_at=utcnow()))
         conn.execute(
-            old.tables["jobs"].insert().values(id=3, flight_id=7, kind="mosaic", status="succeeded", options={})
+            old.tables["jobs"]
+            .insert()
+            .values(
+                id=3,
+                flight_id=7,
+                kind="mosaic",
+                status="succeeded",
+                stage="write_report",
+                progress=100.0,
+                progress_detail="done",
+                timings={},
+                options={},
+                error="",
+                celery_id="c1",
+                created_at=utcnow(),
+                updated_at=utcnow(),
+            )  # fmt: skip
         )
     engine.dispose()
 
@@ -81,4 +97,14 @@ def test_database_from_before_accounts_gets_the_new_columns_and_keeps_its_rows(a
     with db.session() as s:
         job = s.get(Job, 3)
         assert job is not None and job.owner_id is None and job.deliveries == 0 and job.status == "succeeded"
+        assert job.flight_id == 7 and s.get(Flight, 7) is not None
+        s.add(Image(flight_id=7, seq=1, filename="a.jpg", stored_name="a.jpg", size_bytes=1, width=1, height=1))
+    with db.session() as s:  # the newest job and flight deleted: their ids are not given again
+        s.delete(s.get(Job, 3))
+    with db.session() as s:
+        new = Job(flight_id=7, kind="mosaic", options={}, status="queued")
+        s.add(new)
+        s.flush()
+        assert new.id != 3
+        assert len(s.get(Flight, 7).images) == 1
     Database(url)  # a second start finds nothing to upgrade

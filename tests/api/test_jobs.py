@@ -194,3 +194,23 @@ def test_a_succeeded_job_carries_its_report_warnings(client: TestClient, api_set
     with db.session() as s:
         s.get(Job, job["id"]).status = JobStatus.succeeded
     assert client.get(f"/api/jobs/{job['id']}").json()["warnings"] == [warning]
+
+
+def test_retry_waits_until_a_cancelled_stage_has_stopped(client: TestClient, api_settings, frames: list[Path]) -> None:
+    from core.db import utcnow
+
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames)}).json()
+    db = Database(api_settings.resolved_database_url())
+    with db.session() as s:  # cancelled while its stage runs: the stage still beats until its next report
+        record = s.get(Job, job["id"])
+        record.status, record.stage, record.heartbeat_at, record.heartbeat_by = (
+            "cancelled",
+            "match_features",
+            utcnow(),
+            "w:1",
+        )
+    early = client.post(f"/api/jobs/{job['id']}/retry")
+    assert early.status_code == 409 and "still stopping" in early.json()["detail"]
+    with db.session() as s:  # the stage stopped: its heartbeat is cleared
+        s.get(Job, job["id"]).heartbeat_at = None
+    assert client.post(f"/api/jobs/{job['id']}/retry").status_code == 202

@@ -101,8 +101,18 @@ def test_sign_in_link_leaves_no_token_in_the_url(watched_page: tuple[Any, PageWa
     assert page.evaluate("() => window.location.href") == f"{live_service.url}/#/"
     _assert_token_only_in_session_storage(page, token)
 
-    # A link to a page, opened in the same tab (a same-document navigation: no reload), signs in another user.
+    # A link with another token asks before it replaces the one in use: declined, nothing changes ...
     name, other = _new_user(live_service, "linked")
+    questions: list[str] = []
+    page.once("dialog", lambda dialog: (questions.append(dialog.message), dialog.dismiss()))
+    page.goto(f"{live_service.url}/#/crack-surveys?token={other}")
+    expect(page.get_by_role("heading", name="Crack surveys", exact=True)).to_be_visible()
+    expect(page.get_by_test_id("user-name")).to_have_text("admin")
+    assert questions and "another user" in questions[0]
+    _assert_token_only_in_session_storage(page, token)
+    # ... accepted, a link to a page, opened in the same tab (no reload), signs in the other user.
+    page.goto(f"{live_service.url}/#/")
+    page.once("dialog", lambda dialog: dialog.accept())
     page.goto(f"{live_service.url}/#/crack-surveys?token={other}")
     expect(page.get_by_role("heading", name="Crack surveys", exact=True)).to_be_visible()
     expect(page.get_by_test_id("user-name")).to_have_text(name)
