@@ -182,7 +182,7 @@ def _never_reuse_ids(engine: Engine) -> None:
     (``legacy_alter_table``), so ``images`` and ``jobs`` point at the rebuilt ``flights``."""
     if engine.dialect.name != "sqlite":
         return
-    for table in (Flight.__table__, Job.__table__):
+    for table in (Base.metadata.tables["flights"], Base.metadata.tables["jobs"]):
         with engine.connect() as conn:
             ddl = conn.scalar(text("SELECT sql FROM sqlite_master WHERE type='table' AND name=:n"), {"n": table.name})
         if ddl is None or "AUTOINCREMENT" in ddl.upper():
@@ -192,7 +192,7 @@ def _never_reuse_ids(engine: Engine) -> None:
             conn.exec_driver_sql("PRAGMA legacy_alter_table=ON")
             conn.commit()
             try:
-                _rebuild(conn, table)  # type: ignore[arg-type]
+                _rebuild(conn, table)
                 conn.commit()
             finally:
                 conn.rollback()
