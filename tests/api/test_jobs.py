@@ -180,7 +180,14 @@ def test_docs_render_offline(client: TestClient) -> None:
     assert client.get("/vendor/leaflet/leaflet.js").status_code == 200
     assert client.get("/openapi.json").json()["info"]["title"] == "Fotoskhema"
     assert client.get("/api/health").json()["status"] == "ok"
-    assert client.get("/api/config").json() == {"basemap_url": ""}
+    settings = client.app.state.settings  # type: ignore[attr-defined]
+    assert client.get("/api/config").json() == {
+        "basemap_url": "",
+        "public_read": False,
+        "max_upload_bytes": settings.max_upload_bytes,  # the viewer splits uploads by these
+        "max_request_bytes": settings.max_request_bytes,
+        "max_files_per_request": settings.max_files_per_request,
+    }
 
 
 def test_a_succeeded_job_carries_its_report_warnings(client: TestClient, api_settings, frames: list[Path]) -> None:
