@@ -109,9 +109,9 @@ def enqueue(db: Database, queue: JobQueue, job_id: int) -> JobOut:
     """Send a recorded job's pipeline; a queue that is down fails the job and answers 503."""
     with db.session() as s:
         job = job_or_404(s, job_id)
-        pipeline = pipeline_key(job.kind, job.options)
+        pipeline, previous = pipeline_key(job.kind, job.options), job.celery_id
     try:
-        chain_id = queue.enqueue(job_id, pipeline)
+        chain_id = queue.enqueue(job_id, pipeline, after=previous)  # a retry's chain sorts after the last
     except Exception as exc:  # the broker is down: say so, and don't leave a job that never runs
         with db.session() as s:
             failed = job_or_404(s, job_id)

@@ -22,8 +22,9 @@ PRIORITY_SUFFIXES = ("", "\x06\x163", "\x06\x166", "\x06\x169")  # kombu's Redis
 
 
 class JobQueue(Protocol):
-    def enqueue(self, job_id: int, pipeline: str) -> str:
-        """Send the stages of ``pipeline`` (see workers.pipeline.PIPELINES); return an id for the chain."""
+    def enqueue(self, job_id: int, pipeline: str, after: str = "") -> str:
+        """Send the stages of ``pipeline`` (see workers.pipeline.PIPELINES); return an id for the chain, newer
+        than ``after`` (the job's previous one) whatever this host's clock says."""
         ...
 
 
@@ -42,8 +43,8 @@ class CeleryQueue:
         self.queue = queue
         self._redis = redis_client(redis_url, PROBE_TIMEOUT)
 
-    def enqueue(self, job_id: int, pipeline: str) -> str:
-        token = new_token()
+    def enqueue(self, job_id: int, pipeline: str, after: str = "") -> str:
+        token = new_token(after)
         self.send(job_id, pipeline, token)
         return token
 

@@ -39,7 +39,7 @@ class RecordingQueue:
     sent: list[tuple[int, str]] = field(default_factory=list)
     fail: bool = False
 
-    def enqueue(self, job_id: int, kind: str) -> str:
+    def enqueue(self, job_id: int, kind: str, after: str = "") -> str:
         if self.fail:
             raise ConnectionError("broker unreachable")
         self.sent.append((job_id, kind))
