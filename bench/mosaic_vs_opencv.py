@@ -2,7 +2,13 @@
 
 Run by hand from the repository root::
 
-    .venv/bin/python bench/mosaic_vs_opencv.py [DIR] [--working-max-px N] [--json OUT]
+    .venv/bin/python bench/mosaic_vs_opencv.py [DIR ...] [--working-max-px N] [--synthetic N]
+        [--scaling 10 30 100] [--json OUT]
+
+Data sets: each ``DIR`` given, else ``drone_brighton_strip1`` and ``stitching`` (budapest1-6) from
+``../shared/data`` where present; ``--synthetic N`` (default 30, 0 for none) adds a GPS flight of N frames
+rendered by ``tests/scenes.py`` into a temp dir. ``--scaling`` times our pipeline alone on synthetic flights
+of those sizes (seconds per frame should stay flat).
 
 Each run happens in its own spawned child process, so the peak resident memory it reports (the
 child's VmHWM) is that run's alone. Both runs start from the same JPEGs: ours is asked for working
@@ -21,7 +27,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DIR = ROOT.parent / "shared" / "data" / "drone_brighton_strip1"
+DATA = ROOT.parent / "shared" / "data"
+DEFAULT_DIRS = [DATA / "drone_brighton_strip1", DATA / "stitching"]
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
 sys.path.insert(0, str(ROOT))  # run as a script from a checkout, installed or not
 
@@ -59,6 +66,7 @@ def run_ours(src: str, working_max_px: int) -> dict[str, Any]:
         "size": [report["mosaic"]["width"], report["mosaic"]["height"]],
         "frames_used": len(used) if isinstance(used, list) else used,  # the report lists them
         "tie_point_rms_px": report.get("tie_point_rms_px"),
+        "tie_point_rms_px_original": report.get("tie_point_rms_px_original"),
         "stage_seconds": report.get("stage_seconds"),
     }
 
@@ -137,68 +145,105 @@ def ratios(ours: dict[str, Any], cv: dict[str, Any]) -> dict[str, float | None]:
     return {k: round(ours[k] / cv[k], 3) if both else None for k in ("seconds", "peak_mib")}
 
 
-def print_table(ours: dict[str, Any], cv: dict[str, Any]) -> None:
-    def size(r: dict[str, Any]) -> str:
-        return "x".join(map(str, r["size"])) if "size" in r else "-"
+def _size(r: dict[str, Any]) -> str:
+    return "x".join(map(str, r["size"])) if "size" in r else "-"
 
-    r = {k: "-" if v is None else f"{v:.2f}" for k, v in ratios(ours, cv).items()}
-    rows = [
-        ("wall time, s", f"{ours['seconds']:.2f}", f"{cv['seconds']:.2f}", r["seconds"]),
-        ("peak RSS, MiB", f"{ours['peak_mib']:.0f}", f"{cv['peak_mib']:.0f}", r["peak_mib"]),
-        ("output size, px", size(ours), size(cv), ""),
-        ("frames used", str(ours.get("frames_used", "-")), str(cv.get("frames_used", "-")), ""),
-        ("status", ours["status"][:20], cv["status"][:20], ""),
-    ]
-    print(f"{'':18}{'ours':>22}{'OpenCV':>22}{'ours/OpenCV':>14}")
-    for name, a, b, q in rows:
-        print(f"{name:18}{a:>22}{b:>22}{q:>14}")
-    rms = ours.get("tie_point_rms_px")
-    print(f"our tie-point RMS: {'-' if rms is None else f'{rms:.3f}'} px (working resolution)")
-    if ours["ok"] and cv["ok"] and ours["frames_used"] != cv["frames_used"]:
-        print("note: the runs kept different numbers of frames, so they did different amounts of work")
-    for who, res in (("ours", ours), ("OpenCV", cv)):
-        if not res["ok"]:
-            print(f"{who} failed: {res['status']}")
+
+def print_table(results: list[dict[str, Any]]) -> None:
+    """One row per data set: both runs' time, peak RSS, frames used and output size, and the ratios."""
+    head = (
+        f"{'data set':24}{'frames':>7}{'ours s':>8}{'cv s':>8}{'time x':>8}{'ours MiB':>9}{'cv MiB':>8}"
+        f"{'mem x':>7}{'used ours/cv':>13}{'ours px':>12}{'cv px':>12}{'RMS px*':>8}"
+    )
+    print(head)
+    for res in results:
+        ours, cv = res["ours"], res["opencv"]
+        r = {k: "-" if v is None else f"{v:.2f}" for k, v in ratios(ours, cv).items()}
+        rms = ours.get("tie_point_rms_px_original")
+        used = f"{ours.get('frames_used', '-')}/{cv.get('frames_used', '-')}"
+        print(
+            f"{res['name'][:23]:24}{res['frames']:>7}{ours['seconds']:>8.2f}{cv['seconds']:>8.2f}{r['seconds']:>8}"
+            f"{ours['peak_mib']:>9.0f}{cv['peak_mib']:>8.0f}{r['peak_mib']:>7}{used:>13}"
+            f"{_size(ours):>12}{_size(cv):>12}{'-' if rms is None else f'{rms:.2f}':>8}"
+        )
+    print("time x, mem x: ours / OpenCV in the same run. *our tie-point RMS in the photos' own pixels.")
+    for res in results:
+        for who in ("ours", "opencv"):
+            if not res[who]["ok"]:
+                print(f"{res['name']}: {who} failed: {res[who]['status']}")
+        stages = res["ours"].get("stage_seconds")
+        if stages:
+            print(f"{res['name']}: our stages, s: " + ", ".join(f"{k} {v:.2f}" for k, v in stages.items()))
+
+
+def synthetic_flight(out: Path, n_frames: int) -> Path:
+    """A GPS flight of ``n_frames`` 1280 x 960 frames, two serpentine lines, from tests/scenes.py."""
+    from tests.scenes import make_flight
+
+    make_flight(out, n_frames=n_frames, frame_size=(1280, 960), layout="grid", rotation_deg=6, gps=True, seed=7)
+    return out
+
+
+def measure(name: str, src: Path, working_max_px: int, with_opencv: bool = True) -> dict[str, Any]:
+    n = len(image_paths(src))
+    print(f"{name}: {n} frames, both runs at {working_max_px} px on the longest side ...", flush=True)
+    ours = in_child(run_ours, str(src), working_max_px)
+    cv = in_child(run_opencv, str(src), working_max_px) if with_opencv else {"ok": False, "status": "not run"}
+    cv.setdefault("seconds", float("nan"))
+    cv.setdefault("peak_mib", float("nan"))
+    return {"name": name, "dir": str(src), "frames": n, "ours": ours, "opencv": cv, "ratios": ratios(ours, cv)}
+
+
+def print_scaling(rows: list[dict[str, Any]]) -> None:
+    print(f"{'frames':>7}{'ours s':>9}{'s/frame':>9}{'peak MiB':>10}{'used':>6}")
+    for row in rows:
+        ours = row["ours"]
+        print(
+            f"{row['frames']:>7}{ours['seconds']:>9.2f}{ours['seconds'] / row['frames']:>9.3f}"
+            f"{ours['peak_mib']:>10.0f}{str(ours.get('frames_used', '-')):>6}"
+        )
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("dir", nargs="?", type=Path, default=DEFAULT_DIR, help="folder of frames")
+    parser.add_argument("dirs", nargs="*", type=Path, help="folders of frames (default: the shared data sets)")
     parser.add_argument(
         "--working-max-px",
         type=int,
         default=None,
         help="longest side of the working frames, both runs (default: the pipeline's)",
     )
+    parser.add_argument("--synthetic", type=int, default=30, help="frames of the synthetic GPS flight (0: none)")
+    parser.add_argument("--scaling", type=int, nargs="*", default=[], help="synthetic flight sizes, ours only")
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if not args.dir.is_dir() or len(image_paths(args.dir)) < 2:
-        sys.exit(f"{args.dir}: no folder with at least 2 images (the default needs ../shared/data)")
+    dirs = args.dirs or [d for d in DEFAULT_DIRS if d.is_dir()]
+    for d in dirs:
+        if not d.is_dir() or len(image_paths(d)) < 2:
+            sys.exit(f"{d}: no folder with at least 2 images (the defaults need ../shared/data)")
     if args.working_max_px is None:
         from workers.config import MosaicConfig
 
         args.working_max_px = MosaicConfig().working_max_px
-    n = len(image_paths(args.dir))
-    print(
-        f"{n} frames from {args.dir}, both runs at {args.working_max_px} px on the longest side "
-        "(OpenCV gets frames resized beforehand: same input, fair comparison); one child process each"
-    )
-    ours = in_child(run_ours, str(args.dir), args.working_max_px)
-    cv = in_child(run_opencv, str(args.dir), args.working_max_px)
-    print_table(ours, cv)
+    print("OpenCV gets frames resized beforehand (same input, fair comparison); one child process per run")
+    results = [measure(d.name, d, args.working_max_px) for d in dirs]
+    scaling: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.synthetic:
+            src = synthetic_flight(Path(tmp) / f"synthetic{args.synthetic}", args.synthetic)
+            results.append(measure(f"synthetic {args.synthetic} GPS", src, args.working_max_px))
+        for n in args.scaling:
+            src = synthetic_flight(Path(tmp) / f"scaling{n}", n)
+            scaling.append(measure(f"synthetic {n}", src, args.working_max_px, with_opencv=False))
+    print_table(results)
+    if scaling:
+        print_scaling(scaling)
     if args.json:
-        figures = {
-            "dir": str(args.dir),
-            "frames": n,
-            "working_max_px": args.working_max_px,
-            "ours": ours,
-            "opencv": cv,
-            "ratios_ours_over_opencv": ratios(ours, cv),
-        }
+        figures = {"working_max_px": args.working_max_px, "data_sets": results, "scaling": scaling}
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
     return 0
 

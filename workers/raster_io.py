@@ -22,9 +22,17 @@ BlockWriter = Callable[[Window, np.ndarray, np.ndarray], None]
 
 @contextmanager
 def open_block_writer(
-    path: Path, width: int, height: int, crs: int | str | None, transform: list[float] | None
+    path: Path,
+    width: int,
+    height: int,
+    crs: int | str | None,
+    transform: list[float] | None,
+    compress: str | None = "deflate",
 ) -> Iterator[BlockWriter]:
     """A 3-band uint8 tiled GeoTIFF with an internal mask; yields ``write(window, rgb, mask)``.
+
+    ``compress`` None writes the tiles uncompressed: right for a scratch file that is read once into a
+    COG (deflating it first cost 0.75 s of a 3 s COG on a 14 MP mosaic, for a file that is then deleted).
 
     ``transform`` (rasterio's affine a, b, c, d, e, f) places the pixels; ``crs`` names their CRS: an EPSG
     code, a WKT string (a local engineering frame such as a specimen's mm), or None for none.
@@ -40,11 +48,12 @@ def open_block_writer(
         "tiled": True,
         "blockxsize": 512,
         "blockysize": 512,
-        "compress": "deflate",
         "photometric": "RGB",
         "BIGTIFF": "IF_SAFER",
         "num_threads": "ALL_CPUS",
     }
+    if compress is not None:
+        profile["compress"] = compress
     if transform is not None:
         profile["transform"] = Affine(*transform)
         if crs is not None:
@@ -64,6 +73,10 @@ def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
     profile = {**cog_profiles.get(compression), "num_threads": "ALL_CPUS"}  # compress on every core
     if compression == "jpeg":
         profile["photometric"] = "YCbCr"
+    else:
+        # horizontal differencing before deflate/LZW: the Brighton mosaic's COG 21.0 -> 15.7 MiB, in the
+        # same time (1.7 s either way, measured); the pixels read back are identical
+        profile["predictor"] = 2
     with atomic_path(dst) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256):
         cog_translate(
             str(src), str(tmp), profile, add_mask=True, overview_resampling="average", in_memory=False, quiet=True

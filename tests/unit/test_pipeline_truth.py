@@ -178,3 +178,19 @@ def test_gpu_sift_pipeline_matches_the_truth(tmp_path: Path) -> None:
     ws = JobWorkspace(tmp_path / "job")
     assert ws.load_stage_report("detect_features")["device"] == "cuda"
     assert corner_errors(flight, ws).max() < 1.0 and report["tie_point_rms_px"] < 0.5
+
+
+def test_registration_at_half_size_keeps_the_truth_bounds(tmp_path: Path) -> None:
+    """Features found on half-size registration copies, tie points refined on the working copies: the
+    alignment meets the same bounds as registration at full size, in working pixels."""
+    flight = make_flight(
+        tmp_path / "frames", n_frames=6, frame_size=(1280, 960), rotation_deg=8, perspective=0.02, gps=True, seed=5
+    )
+    options = {"working_max_px": 1280, "registration_max_px": 640}
+    report = process_directory(tmp_path / "frames", tmp_path / "job", options)
+    ws = JobWorkspace(tmp_path / "job")
+    assert len(report["frames_used"]) == 6 and not report["frames_rejected"]
+    points = np.concatenate([ws.load_features(k)[0] for k in range(6)])
+    assert points[:, 0].max() > 1000  # keypoints come back in working pixels, not the 640 px copy's
+    assert corner_errors(flight, ws).max() < 1.0
+    assert report["tie_point_rms_px"] < 0.5

@@ -21,6 +21,7 @@ from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 MAX_ROUNDS = 5  # adjustments, each after dropping the worst inconsistent pair
 MAX_PAIR_RMS_FACTOR = 1.5  # a pair is inconsistent above this multiple of the RANSAC threshold
+CONFLICT_FACTOR = 2.0  # a pair is strained when its adjusted tie RMS exceeds this multiple of its own fit
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
@@ -32,13 +33,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         progress(round_ / MAX_ROUNDS, f"adjustment round {round_ + 1}")
         root, refined, ties = _adjust(ws, cfg, frames, pairs)
         bad = _inconsistent_pairs(refined, ties, MAX_PAIR_RMS_FACTOR * cfg.ransac_threshold_px)
+        reason = "inconsistent with the other pairs after adjustment"
+        if not bad:
+            bad = _conflicting_pair(pairs, refined, ties, 0.5 * cfg.ransac_threshold_px)
+            reason = "weakest overlap pulling a neighbouring pair away from its own fit"
         if not bad or round_ == MAX_ROUNDS - 1:  # the last adjustment is always over the pairs kept
             break
         # A pair whose tie points stay far apart once every other pair has had its say is a false
         # overlap (repeated texture, moving objects): drop it and adjust again without it.
-        dropped += [
-            DroppedPair(p.i, p.j, "inconsistent with the other pairs after adjustment") for p in pairs if p.pair in bad
-        ]
+        dropped += [DroppedPair(p.i, p.j, reason) for p in pairs if p.pair in bad]
         pairs = [p for p in pairs if p.pair not in bad]
     sizes = {k: (frames[k].width, frames[k].height) for k in refined}
     rejected = _rejections(frames, refined, sizes)
@@ -102,6 +105,40 @@ def _inconsistent_pairs(
     worst = max(rms, key=lambda pair: rms[pair], default=None)
     # One at a time: a single false pair drags its neighbours' residuals up too.
     return {worst} if worst is not None and rms[worst] > limit_px else set()
+
+
+def _conflicting_pair(
+    pairs: list[PairRecord], homs: dict[int, np.ndarray], ties: dict[tuple[int, int], TiePoints], floor_px: float
+) -> set[tuple[int, int]]:
+    """The weakest pair (fewest inliers) sharing a frame with the pair the adjustment strains most, if any.
+
+    A pair whose tie points fit its own homography but meet more than ``CONFLICT_FACTOR`` times worse (and
+    over ``floor_px``) after the adjustment is pulled by a pair that disagrees with it: on real flights, a
+    small overlap between frames two apart, where lens distortion and relief weigh most. The weakest pair
+    touching its frames is dropped, never one whose loss would disconnect a frame.
+    """
+    adjusted = tie_residuals_px(homs, ties)
+    # frame i as the plane: frame j maps onto it through the inverse of the pair model (i -> j)
+    own = {
+        p.pair: tie_residuals_px({0: np.eye(3), 1: np.linalg.inv(p.model)}, {(0, 1): ties[p.pair]})
+        for p in pairs
+        if p.pair in ties and p.model is not None
+    }
+    strain = {}
+    for pair, r in adjusted.items():
+        fit = own[pair].get((0, 1)) if pair in own else None
+        rms, fit_rms = float(np.sqrt(np.mean(r**2))), float(np.sqrt(np.mean(fit**2))) if fit is not None else 0.0
+        if rms > floor_px and rms > CONFLICT_FACTOR * max(fit_rms, 1e-6):
+            strain[pair] = rms / max(fit_rms, 1e-6)
+    if not strain:
+        return set()
+    worst = max(strain, key=lambda pair: strain[pair])
+    frames_before = len(spanning_tree(max(homs) + 1, {p.pair: 1.0 for p in pairs})[1])
+    for p in sorted((p for p in pairs if p.pair != worst and set(p.pair) & set(worst)), key=lambda p: p.inliers):
+        rest = {q.pair: 1.0 for q in pairs if q.pair != p.pair}
+        if len(spanning_tree(max(homs) + 1, rest)[1]) == frames_before:
+            return {p.pair}
+    return set()
 
 
 def _rejections(

@@ -3,6 +3,7 @@ time (:mod:`workers.algorithms.mosaic.compose`)."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
@@ -11,6 +12,7 @@ from rasterio.windows import Window
 
 from workers.algorithms.mosaic import compose_block, gains_and_coverage, output_box
 from workers.config import MosaicConfig
+from workers.parallel import thread_count
 from workers.raster_io import open_block_writer, translate_to_cog
 from workers.records import Coverage
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -32,12 +34,23 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     blocks = [(x, y) for y in range(0, geo.height, cfg.block_px) for x in range(0, geo.width, cfg.block_px)]
     tmp = ws.mosaic_scratch_path()
     transform = geo.transform if geo.georeferenced else None
-    with open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform) as write:
-        for n, (x, y) in enumerate(blocks):
-            progress(0.1 + 0.75 * n / len(blocks), f"block {n + 1}/{len(blocks)}")
-            w, h = min(cfg.block_px, geo.width - x), min(cfg.block_px, geo.height - y)
-            rgb, mask = compose_block(image_of, sizes, to_frame, boxes, gains, (x, y, w, h), cfg.feather_px)
-            write(Window(x, y, w, h), rgb, mask)
+    windows = [(x, y, min(cfg.block_px, geo.width - x), min(cfg.block_px, geo.height - y)) for x, y in blocks]
+
+    def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px)
+
+    threads = thread_count(cfg.threads)
+    with (
+        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=None) as write,
+        ThreadPoolExecutor(max_workers=threads) as pool,
+    ):
+        # Windows are composed on every core (OpenCV and NumPy release the GIL) and written in order by
+        # this thread, a batch at a time, so memory holds a batch of windows, never the whole mosaic.
+        for start in range(0, len(windows), threads):
+            progress(0.1 + 0.75 * start / len(windows), f"block {start + 1}/{len(windows)}")
+            batch = windows[start : start + threads]
+            for (x, y, w, h), (rgb, mask) in zip(batch, pool.map(one, batch), strict=True):
+                write(Window(x, y, w, h), rgb, mask)
     progress(0.85, "writing COG with overviews")
     translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression)
     tmp.unlink(missing_ok=True)

@@ -1,4 +1,5 @@
-"""Stage ``detect_features``: SIFT keypoints and descriptors of every working frame."""
+"""Stage ``detect_features``: SIFT keypoints and descriptors of every frame, found on a registration copy
+(``registration_max_px``) and given in working-copy pixels, so later stages never see the smaller copy."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from typing import Any
 import cv2
 
 from gpu_kernels.backend import resolve_device
-from workers.algorithms.mosaic import detect, detector_name
+from workers.algorithms.mosaic import detect, detector_name, registration_copy, to_full_pixels
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map
 from workers.records import Frame
@@ -21,8 +22,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
 
     def one(frame: Frame) -> int:
         gray = cv2.cvtColor(ws.load_working_image(frame.index), cv2.COLOR_BGR2GRAY)
-        points, descriptors = detect(gray, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
-        ws.save_features(frame.index, points, descriptors)
+        # ortho: the bundle adjustment triangulates relief and needs tie points at working precision, which
+        # the homography-guided refinement of planar mode cannot give it
+        small, factors = (
+            registration_copy(gray, cfg.registration_max_px) if cfg.mode == "planar" else (gray, (1.0, 1.0))
+        )
+        points, descriptors = detect(small, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
+        ws.save_features(frame.index, to_full_pixels(points, factors), descriptors)
         return len(points)
 
     # One frame at a time: OpenCV's SIFT already uses every core (measured: 2 threads gave no gain on

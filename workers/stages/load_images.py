@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from workers.config import MosaicConfig
+from workers.parallel import ordered_map, thread_count
 from workers.pipeline import PipelineError
 from workers.records import Frame, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -18,30 +19,25 @@ EXIF_FIELDS = ("gps", "focal_length_mm", "focal_length_35mm", "yaw", "pitch", "r
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Read ``inputs.json``; write ``work/frame_NNNN.npy`` and ``frames.json``."""
     inputs = ws.load_inputs()
-    frames: list[Frame] = []
-    rejected: list[RejectedFrame] = []
-    for k, item in enumerate(inputs):
-        progress(k / len(inputs), f"frame {k + 1}/{len(inputs)}")
+
+    def one(k: int) -> Frame | RejectedFrame:
+        item = inputs[k]
         image = cv2.imread(item["path"], cv2.IMREAD_COLOR)
         if image is None:
-            rejected.append(RejectedFrame(k, item["name"], "could not be decoded"))
-            continue
+            return RejectedFrame(k, item["name"], "could not be decoded")
         working, scale = _downscale(image, cfg.working_max_px)
         ws.save_working_image(k, working)
         metadata = {name: item.get(name) for name in EXIF_FIELDS}
-        frames.append(
-            Frame(
-                k,
-                item["name"],
-                item["path"],
-                image.shape[1],
-                image.shape[0],
-                working.shape[1],
-                working.shape[0],
-                scale,
-                **metadata,
-            )
+        height, width = image.shape[:2]
+        del image  # the full decode is the largest array of the stage: one per thread at a time
+        return Frame(
+            k, item["name"], item["path"], width, height, working.shape[1], working.shape[0], scale, **metadata
         )
+
+    # A thread per core: libjpeg and cv2.resize release the GIL, and each frame is its own file.
+    done = ordered_map(one, list(range(len(inputs))), thread_count(cfg.threads), progress, "frame")
+    frames = [f for f in done if isinstance(f, Frame)]
+    rejected = [f for f in done if isinstance(f, RejectedFrame)]
     if len(frames) < 2:
         raise PipelineError(f"only {len(frames)} of {len(inputs)} frames could be decoded; a mosaic needs 2")
     ws.save_frames(frames, rejected)

@@ -1,22 +1,27 @@
 """Stage ``match_features``: ratio-test matches and a USAC model for each candidate pair.
 
 The model is a homography in planar mode (the frames are chained by it) and a fundamental matrix in
-ortho mode (the scene may have relief; the bundle adjustment triangulates it).
+ortho mode (the scene may have relief; the bundle adjustment triangulates it). In planar mode, features
+found on reduced registration copies give tie points only as fine as those copies, so the kept tie points
+are refined on the working copies by NCC through the pair's homography.
 """
 
 from __future__ import annotations
 
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 
 from gpu_kernels.backend import Device, resolve_device
 from workers.algorithms.mosaic import (
+    apply_homography,
     candidate_pairs,
     estimate_fundamental,
     estimate_homography,
     local_metres,
     match,
+    refine_tie_points,
     spread_subset,
 )
 from workers.config import MosaicConfig
@@ -61,7 +66,7 @@ def _match_pair(
 ) -> PairRecord:
     i, j = fa.index, fb.index
     (pts_i, desc_i), (pts_j, desc_j) = features[i], features[j]
-    matches = match(desc_i, desc_j, cfg.feature_type, device, cfg.ratio_test, cfg.ncc_threshold)
+    matches = match(desc_i, desc_j, cfg.feature_type, device, cfg.ratio_test, cfg.ncc_threshold, cfg.min_inliers)
     estimate = estimate_fundamental if cfg.mode == "ortho" else estimate_homography
     H, inliers = estimate(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
     n_in = int(inliers.sum())
@@ -71,11 +76,12 @@ def _match_pair(
         return PairRecord(i, j, len(matches), n_in, False, kind, H)
     good = matches[inliers]
     keep = spread_subset(pts_i[good[:, 0]], (fa.width, fa.height), cfg.max_tie_points_per_pair)
-    ws.save_matches(
-        (i, j),
-        pts_i[good[keep, 0]].astype(np.float64),
-        pts_j[good[keep, 1]].astype(np.float64),
-        good[keep, 0],
-        good[keep, 1],
-    )
+    ties_i, ties_j = pts_i[good[keep, 0]].astype(np.float64), pts_j[good[keep, 1]].astype(np.float64)
+    if kind == "H" and H is not None and cfg.registration_max_px < max(fa.width, fa.height, fb.width, fb.height):
+        gray_i, gray_j = (cv2.cvtColor(ws.load_working_image(k, mmap=True), cv2.COLOR_BGR2GRAY) for k in (i, j))
+        ties_i, ties_j, _ = refine_tie_points(gray_i, gray_j, ties_i, ties_j, H)
+        # the inlier test again, at working precision: RANSAC judged the coarser registration positions
+        close = np.linalg.norm(apply_homography(H, ties_i) - ties_j, axis=1) <= cfg.ransac_threshold_px
+        ties_i, ties_j, keep = ties_i[close], ties_j[close], keep[close]
+    ws.save_matches((i, j), ties_i, ties_j, good[keep, 0], good[keep, 1])
     return PairRecord(i, j, len(matches), n_in, True, kind, H, tie_points=len(keep))

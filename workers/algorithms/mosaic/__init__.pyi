@@ -60,6 +60,12 @@ from .features import (
 from .features import (
     match_ratio as match_ratio,
 )
+from .features import (
+    registration_copy as registration_copy,
+)
+from .features import (
+    to_full_pixels as to_full_pixels,
+)
 from .grid import (
     MAX_OUTPUT_PIXELS as MAX_OUTPUT_PIXELS,
 )
@@ -83,4 +89,7 @@ from .pairing import (
 )
 from .pairing import (
     local_metres as local_metres,
+)
+from .ties import (
+    refine_tie_points as refine_tie_points,
 )

@@ -4,11 +4,11 @@ bundle adjustment used by Brown & Lowe 2007 and OpenCV's ``detail::BundleAdjuste
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csr_matrix
 
 Pair = tuple[int, int]
 
@@ -96,8 +96,10 @@ def refine_homographies(
 
     The root frame is held fixed (it defines the plane). Each other frame is parametrised by a
     correction ``I + D`` in its own normalised coordinates (centre 0, half-size 1), which keeps the
-    eight unknowns per frame on the same scale. A soft-L1 loss down-weights residual outliers (Huber
-    stalls at max_nfev here).
+    eight unknowns per frame on the same scale. A soft-L1 loss down-weights residual outliers. The
+    derivatives are analytic and the normal equations (8 unknowns per frame) are solved directly by
+    Levenberg-Marquardt: 1.4 s for 30 frames and 40k tie points, where scipy's ``least_squares`` with
+    finite differences over a sparsity pattern took 167 s and stopped at its evaluation limit.
 
     The tie-point cost is nearly flat along one mode, the slow "bending" of a chain of frames through
     their perspective terms: on a synthetic strip the true solution costs more than one bent by 3 px,
@@ -120,57 +122,133 @@ def refine_homographies(
         return dict(initial)
     slot = {k: s for s, k in enumerate(free)}
     norms = {k: _normaliser(*frame_sizes[k]) for k in initial}
-    obs = [(i, j, t) for (i, j), t in ties.items() if i in initial and j in initial and len(t.points_i)]
-
-    def frame_h(params: np.ndarray, k: int) -> np.ndarray:
-        if k == root:
-            return initial[k]
-        d = np.append(params[8 * slot[k] : 8 * slot[k] + 8], 0.0).reshape(3, 3)
-        N = norms[k]
-        return initial[k] @ np.linalg.inv(N) @ (np.eye(3) + d) @ N
-
+    # frame k's pixels -> plane is A_k (I + D_k) N_k, with A_k = initial_k N_k^-1 fixed: only D_k varies
+    lift = {k: initial[k] @ np.linalg.inv(norms[k]) for k in initial}
+    obs = [
+        (i, j, _normalised_points(norms[i], t.points_i), _normalised_points(norms[j], t.points_j))
+        for (i, j), t in ties.items()
+        if i in initial and j in initial and len(t.points_i)
+    ]
     perspective = np.array([8 * s + o for s in range(len(free)) for o in (6, 7)])
+    rows, cols = _jacobian_structure(obs, slot, len(perspective), perspective)
+    shape = (rows.max() + 1, 8 * len(free))
+
+    def correction(params: np.ndarray, k: int) -> np.ndarray:
+        if k == root:
+            return np.eye(3)
+        return np.eye(3) + np.append(params[8 * slot[k] : 8 * slot[k] + 8], 0.0).reshape(3, 3)
 
     def residuals(params: np.ndarray) -> np.ndarray:
         parts = [
-            apply_homography(frame_h(params, i), t.points_i) - apply_homography(frame_h(params, j), t.points_j)
-            for i, j, t in obs
+            _project(lift[i], correction(params, i), qi)[0] - _project(lift[j], correction(params, j), qj)[0]
+            for i, j, qi, qj in obs
         ]
         return np.concatenate([np.concatenate(parts).ravel(), perspective_damping * params[perspective]])
 
-    sparsity = _jacobian_sparsity(obs, slot, perspective)
-    result = least_squares(
-        residuals,
-        np.zeros(8 * len(free)),
-        jac_sparsity=sparsity,
-        loss="soft_l1",
-        f_scale=loss_scale_px,
-        x_scale="jac",
-        method="trf",
-        max_nfev=200,
-    )
-    refined = {k: frame_h(result.x, k) for k in initial}
+    def jacobian(params: np.ndarray) -> csr_matrix:
+        data = []
+        for i, j, qi, qj in obs:
+            for k, q, sign in ((i, qi, 1.0), (j, qj, -1.0)):
+                if k in slot:
+                    data.append(sign * _projection_derivative(lift[k], correction(params, k), q).ravel())
+        data.append(np.full(len(perspective), perspective_damping))
+        return csr_matrix((np.concatenate(data), (rows, cols)), shape=shape)
+
+    x = _levenberg_marquardt(residuals, jacobian, np.zeros(8 * len(free)), loss_scale_px)
+    refined = {k: initial[k] @ np.linalg.inv(norms[k]) @ correction(x, k) @ norms[k] for k in initial}
     return {k: H / H[2, 2] for k, H in refined.items()}
+
+
+def _levenberg_marquardt(
+    residuals: Callable[[np.ndarray], np.ndarray],
+    jacobian: Callable[[np.ndarray], csr_matrix],
+    x0: np.ndarray,
+    f_scale: float,
+    max_iterations: int = 100,
+) -> np.ndarray:
+    """Minimise ``sum rho(r_i^2 / f^2)`` with the soft-L1 ``rho(z) = 2 (sqrt(1 + z) - 1)`` by Levenberg-Marquardt
+    on iteratively reweighted normal equations (Triggs et al. 2000, sec. 6; Marquardt's diagonal damping).
+
+    The normal matrix has 8 rows per free frame, so it is formed densely from the sparse Jacobian and solved
+    directly: a handful of iterations where an iterative trust-region solver needed hundreds of inner ones.
+    """
+
+    def cost(r: np.ndarray) -> float:
+        return float(np.sum(2.0 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)))
+
+    x, r = x0.copy(), residuals(x0)
+    current, lam = cost(r), 1e-3
+    for _ in range(max_iterations):
+        J = jacobian(x)
+        w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)  # IRLS weight of soft-L1: rho'(z)
+        JtW = J.T.multiply(w).tocsr()
+        normal = (JtW @ J).toarray()
+        gradient = JtW @ r
+        diagonal = np.maximum(np.diag(normal), 1e-12)
+        while True:
+            step = np.linalg.solve(normal + lam * np.diag(diagonal), -gradient)
+            r_new = residuals(x + step)
+            new = cost(r_new)
+            if new < current or lam > 1e12:
+                break
+            lam *= 4.0
+        if new >= current:
+            break  # no step lowers the cost: converged
+        x, r = x + step, r_new
+        done = current - new < 1e-10 * current or np.abs(step).max() < 1e-12
+        current, lam = new, max(lam / 3.0, 1e-9)
+        if done:
+            break
+    return x
+
+
+def _normalised_points(N: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(n, 3) homogeneous normalised coordinates ``N p`` of (n, 2) pixel points."""
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    return np.column_stack([pts, np.ones(len(pts))]) @ N.T
+
+
+def _project(A: np.ndarray, C: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plane points (n, 2) of normalised points ``q`` (n, 3) through ``A C``, and their homogeneous (n, 3)."""
+    h = q @ (A @ C).T
+    return h[:, :2] / h[:, 2:3], h
+
+
+# d(C q)/d(params): parameter m of D (row-major, D[2, 2] = 0) scales component ROW[m] of q by q[COL[m]]
+_ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2])
+_COL = np.array([0, 1, 2, 0, 1, 2, 0, 1])
+
+
+def _projection_derivative(A: np.ndarray, C: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(n, 2, 8) derivative of the plane points ``A C q`` (dehomogenised) by the 8 parameters of ``C = I + D``."""
+    u, h = _project(A, C, q)
+    dh = A[None, :, _ROW] * q[:, None, _COL]  # (n, 3, 8): A @ d(Cq)/dm
+    return (dh[:, :2, :] - u[:, :, None] * dh[:, 2:3, :]) / h[:, 2, None, None]
+
+
+def _jacobian_structure(
+    obs: list[tuple[int, int, np.ndarray, np.ndarray]], slot: dict[int, int], n_damped: int, damped: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of every non-zero of the Jacobian, in the order ``jacobian`` lists their values."""
+    rows, cols = [], []
+    r = 0
+    block = np.arange(8)
+    for i, j, qi, _ in obs:
+        n = len(qi)
+        for k in (i, j):
+            if k in slot:
+                point_rows = r + 2 * np.arange(n)[:, None, None] + np.arange(2)[None, :, None]  # (n, 2, 1)
+                rows.append(np.broadcast_to(point_rows, (n, 2, 8)).ravel())
+                cols.append(np.broadcast_to(8 * slot[k] + block, (n, 2, 8)).ravel())
+        r += 2 * n
+    rows.append(r + np.arange(n_damped))
+    cols.append(damped)
+    return np.concatenate(rows), np.concatenate(cols)
 
 
 def _normaliser(width: int, height: int) -> np.ndarray:
     s = 2.0 / max(width, height)
     return np.array([[s, 0, -s * width / 2], [0, s, -s * height / 2], [0, 0, 1.0]])
-
-
-def _jacobian_sparsity(obs: list[tuple[int, int, TiePoints]], slot: dict[int, int], damped: np.ndarray) -> lil_matrix:
-    rows = sum(2 * len(t.points_i) for _, _, t in obs)
-    sparsity = lil_matrix((rows + len(damped), 8 * len(slot)), dtype=np.int8)
-    for k, column in enumerate(damped):
-        sparsity[rows + k, column] = 1
-    r = 0
-    for i, j, t in obs:
-        n = 2 * len(t.points_i)
-        for k in (i, j):
-            if k in slot:
-                sparsity[r : r + n, 8 * slot[k] : 8 * slot[k] + 8] = 1
-        r += n
-    return sparsity
 
 
 def tie_residuals_px(homographies: dict[int, np.ndarray], ties: dict[Pair, TiePoints]) -> dict[Pair, np.ndarray]:

@@ -39,24 +39,50 @@ def compose_block(
     ``image_of(k)`` gives frame ``k``'s (H, W, 3) uint8 BGR pixels, ``sizes[k]`` its (W, H); ``to_frame[k]`` maps
     output px to its px (memory-mapped: only the rows and columns
     the window needs are read). Returns (h, w, 3) uint8 RGB and (h, w) bool coverage.
+
+    Each frame is warped only over the part of the window its box covers, by ``cv2.warpPerspective``
+    (the same bilinear sampling as ``cv2.remap`` on :func:`warp_maps`, without building the maps).
     """
     x, y, w, h = window
     acc = np.zeros((h, w, 3), np.float32)
     wsum = np.zeros((h, w), np.float32)
     for k, (bx0, by0, bx1, by1) in boxes.items():
-        if bx1 <= x or by1 <= y or bx0 >= x + w or by0 >= y + h:
+        sx0, sy0, sx1, sy1 = max(bx0, x), max(by0, y), min(bx1, x + w), min(by1, y + h)
+        if sx1 <= sx0 or sy1 <= sy0:
             continue
-        map_x, map_y = warp_maps(to_frame[k], x, y, w, h)
-        weight = feather_weights(map_x, map_y, *sizes[k], feather_px)
+        sub = (sx0, sy0, sx1 - sx0, sy1 - sy0)
+        weight = feather_weights(*warp_maps(to_frame[k], *sub), *sizes[k], feather_px)
         if not weight.any():
             continue
-        pixels = _sample(image_of(k), map_x, map_y, weight > 0)
-        acc += weight[..., None] * pixels * gains[k][None, None, :].astype(np.float32)
-        wsum += weight
+        pixels = _warp(image_of(k), to_frame[k], sub)
+        pixels *= gains[k].astype(np.float32)[None, None, :]
+        pixels *= weight[..., None]
+        rows, cols = slice(sy0 - y, sy1 - y), slice(sx0 - x, sx1 - x)
+        acc[rows, cols] += pixels
+        wsum[rows, cols] += weight
     mask = wsum > 0
     bgr = np.clip(acc / np.maximum(wsum, 1e-6)[..., None] + 0.5, 0, 255).astype(np.uint8)
     bgr[~mask] = 0
     return bgr[..., ::-1], mask
+
+
+def _warp(image: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w, 3) float32 bilinear samples of ``image`` over an output ``window``, reading only the frame
+    rows and columns the window maps onto."""
+    x, y, w, h = window
+    corners = np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]], np.float64)
+    src = apply_homography(to_frame, corners)
+    c0, r0 = (max(int(v), 0) for v in np.floor(src.min(axis=0)) - 1)
+    c1 = min(int(math.ceil(src[:, 0].max())) + 2, image.shape[1])
+    r1 = min(int(math.ceil(src[:, 1].max())) + 2, image.shape[0])
+    crop = np.ascontiguousarray(image[r0:r1, c0:c1])
+    # window pixel (i, j) -> output pixel centre (x + i + 0.5, y + j + 0.5) -> frame px -> crop px
+    shift_out = np.array([[1.0, 0.0, x + 0.5], [0.0, 1.0, y + 0.5], [0.0, 0.0, 1.0]])
+    shift_crop = np.array([[1.0, 0.0, -c0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]])
+    M = shift_crop @ to_frame @ shift_out
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    out = cv2.warpPerspective(crop, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    return out.astype(np.float32)
 
 
 def _sample(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, valid: np.ndarray) -> np.ndarray:

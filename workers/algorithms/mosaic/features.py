@@ -51,6 +51,33 @@ def detect(
     return to_host(xy[kept]).astype(np.float32), to_host(descriptors)
 
 
+def registration_copy(gray: np.ndarray, max_px: int) -> tuple[np.ndarray, tuple[float, float]]:
+    """``gray`` (H, W) shrunk (INTER_AREA) so its longest side is at most ``max_px``, and the (x, y) factors
+    small / full; (1.0, 1.0) and the image itself when it is already that small.
+
+    Features are found on this copy (cv2.Stitcher's ``registration_resol``): SIFT's cost grows with the
+    pixels, and a few hundred well-spread tie points per pair need no more than about 0.6 MP per frame.
+    """
+    if max_px < 1:
+        raise ValueError("max_px must be positive")
+    height, width = gray.shape[:2]
+    scale = max_px / max(width, height)
+    if scale >= 1.0:
+        return gray, (1.0, 1.0)
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    return small, (size[0] / width, size[1] / height)
+
+
+def to_full_pixels(points: np.ndarray, factors: tuple[float, float]) -> np.ndarray:
+    """(N, 2) float32 pixel (x, y) on a :func:`registration_copy` -> the same points on the full image.
+
+    Pixel centres sit at integers on both (OpenCV's convention), so the map is ``(x + 0.5) / s - 0.5``.
+    """
+    f = np.asarray(factors, dtype=np.float64)
+    return ((points.astype(np.float64) + 0.5) / f - 0.5).astype(np.float32)
+
+
 def match(
     desc_a: np.ndarray,
     desc_b: np.ndarray,
@@ -58,10 +85,14 @@ def match(
     device: Device,
     ratio: float,
     ncc_threshold: float,
+    min_matches: int = 0,
 ) -> np.ndarray:
-    """(M, 2) int64 index pairs (row of ``desc_a``, row of ``desc_b``) of mutual matches."""
+    """(M, 2) int64 index pairs (row of ``desc_a``, row of ``desc_b``) of mutual matches.
+
+    ``min_matches``: OpenCV SIFT gives up early, empty, on a pair that cannot reach it (:func:`match_ratio`).
+    """
     if uses_opencv(feature_type, device):
-        return match_ratio(desc_a, desc_b, ratio)
+        return match_ratio(desc_a, desc_b, ratio, min_matches)
     a, b = to_device(desc_a, device), to_device(desc_b, device)
     if feature_type == "sift":
         found = match_descriptors(a, b, ratio=ratio, mutual=True)
@@ -95,8 +126,17 @@ def detect_sift(gray: np.ndarray, max_features: int) -> tuple[np.ndarray, np.nda
     return points, np.sqrt(desc).astype(np.float32)
 
 
-def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> np.ndarray:
+def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, min_matches: int = 0) -> np.ndarray:
     """Nearest-neighbour matches that pass Lowe's ratio test in both directions.
+
+    Parameters
+    ----------
+    desc_a, desc_b : (N, D), (M, D) float32 descriptors.
+    ratio : Lowe's nearest / second-nearest distance ratio.
+    min_matches : a pair that cannot reach this many matches is not worth matching in full: every
+        ``PROBE_SHARE``-th row of ``desc_a`` is searched first, and when they find fewer than
+        ``min_matches / (2 PROBE_SHARE)`` (half the share of ``min_matches`` it would find in a pair just
+        good enough) the pair is given up, empty. 0 searches every row.
 
     Returns
     -------
@@ -104,17 +144,45 @@ def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> np.ndar
     """
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.int64)
-    forward = _ratio_one_way(desc_a, desc_b, ratio)
-    backward = _ratio_one_way(desc_b, desc_a, ratio)
-    back_map = dict(zip(backward[:, 0].tolist(), backward[:, 1].tolist(), strict=True))
+    index_b = _flann_index(desc_b)
+    # every PROBE_SHARE-th row: detectors list keypoints by scale and place, so a prefix would be one
+    # part of the frame, maybe one the other frame does not see
+    probing = np.zeros(len(desc_a), bool)
+    probing[:: PROBE_SHARE if min_matches > 0 else len(desc_a) + 1] = min_matches > 0
+    rows = [np.flatnonzero(probing), np.flatnonzero(~probing)]
+    probe = _ratio_one_way(desc_a[rows[0]], index_b, ratio)
+    if min_matches > 0 and len(probe) * 2 * PROBE_SHARE < min_matches:
+        return np.zeros((0, 2), np.int64)  # frames that do not overlap: 1/PROBE_SHARE of the work
+    rest = _ratio_one_way(desc_a[rows[1]], index_b, ratio)
+    forward = np.concatenate([probe, rest])
+    forward[:, 0] = np.concatenate([rows[0][probe[:, 0]], rows[1][rest[:, 0]]])
+    forward = forward[np.argsort(forward[:, 0], kind="stable")]
+    if not len(forward):
+        return forward
+    # Only the rows of b that some row of a chose can be mutual: search back from those alone (a
+    # tenth of b on a typical pair, so the check costs a fraction of the forward search).
+    chosen = np.unique(forward[:, 1])
+    backward = _ratio_one_way(desc_b[chosen], _flann_index(desc_a), ratio)
+    back_map = dict(zip(chosen[backward[:, 0]].tolist(), backward[:, 1].tolist(), strict=True))
     keep = [k for k, (a, b) in enumerate(forward.tolist()) if back_map.get(b) == a]
     return forward[keep]
 
 
-def _ratio_one_way(desc_q: np.ndarray, desc_t: np.ndarray, ratio: float) -> np.ndarray:
+PROBE_SHARE = 8  # match_ratio: share of the query rows searched before deciding a pair is worth it
+
+
+def _flann_index(desc: np.ndarray) -> tuple[cv2.flann.Index, np.ndarray]:
+    """A FLANN kd-forest over ``desc``, with the array it searches (the index reads it, so it must live)."""
     # FLANN kd-trees: the 2-NN search is approximate but ~10x faster than brute force at 6k features.
-    cv2.setRNGSeed(len(desc_q))  # FLANN's randomised trees draw from OpenCV's RNG
-    flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
-    knn = flann.knnMatch(desc_q, desc_t, k=2)
-    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance]
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    data = np.ascontiguousarray(desc, np.float32)
+    cv2.setRNGSeed(len(data))  # FLANN's randomised trees draw from OpenCV's RNG: same input, same trees
+    return cv2.flann.Index(data, {"algorithm": 1, "trees": 4}), data
+
+
+def _ratio_one_way(desc_q: np.ndarray, index_t: tuple[cv2.flann.Index, np.ndarray], ratio: float) -> np.ndarray:
+    """(K, 2) int64 (query row, target row) of the queries whose nearest target passes the ratio test."""
+    if not len(desc_q):
+        return np.zeros((0, 2), np.int64)
+    nearest, dist2 = index_t[0].knnSearch(np.ascontiguousarray(desc_q, np.float32), 2, params={"checks": 64})
+    good = dist2[:, 0] < ratio**2 * dist2[:, 1]  # FLANN's L2 distances are squared
+    return np.column_stack([np.flatnonzero(good), nearest[good, 0]]).astype(np.int64)
