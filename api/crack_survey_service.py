@@ -126,7 +126,8 @@ def _check_mesh(data: bytes, name: str, config: dict[str, Any]) -> None:
         raise InvalidInputError(f"options.specimen: {exc}") from None
     width_mm, height_mm = frame.to_plane(mesh.vertices).max(axis=0)[:2]  # as rectify_specimen sizes it
     try:
-        check_raster_size(float(width_mm), float(height_mm), config["mm_per_px"])
+        if config["mm_per_px"] is not None:  # None: the photos' sampling, checked when they are oriented
+            check_raster_size(float(width_mm), float(height_mm), config["mm_per_px"])
     except ValueError as exc:
         raise InvalidInputError(f"options.mm_per_px: {name}: {exc}") from None
     _check_on_mesh(mesh, config["stages"])

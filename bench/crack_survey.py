@@ -19,6 +19,12 @@ Scenes (``tests/crack_scenes.py``, written to a temporary folder): a 400 x 300 m
   OpenCV has no crack detector).
 
 Every run is in its own spawned child (peak RSS = that run's VmHWM). Ratios are ours / OpenCV.
+
+``--hairlines``: instead, whole surveys (every stage, ``tests.crack_scenes.run_survey``) of hairline plates
+(800 x 600 photos, cracks of 0.5-3 photo px in turn, 30 % contrast, 0.5 px PSF, seeds ``--seeds``, one view
+at each of 30, 45 and 60 degrees) at ``mm_per_px`` 0.5x, 1x and 2x the photos' sampling: recall per width
+class (a crack is found when 80 % of its centreline lies within max(1 mm, 2 photo px) of a reported crack),
+total-length error of the cracks found, false length, and width error (estimate - truth) per class.
 """
 
 from __future__ import annotations
@@ -145,12 +151,91 @@ def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
     }
 
 
+HAIRLINE_WIDTHS_PX = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+
+
+def run_hairlines(seeds: list[int], angles: tuple[float, ...] = (30.0, 45.0, 60.0)) -> list[dict[str, Any]]:
+    """One row per (seed, angle, ratio): recall per width class, length, false length and width errors."""
+    import numpy as np
+
+    from tests.crack_scenes import make_crack_survey, rows_along, run_survey, score_stage
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds:
+            for angle in angles:
+                scene = make_crack_survey(
+                    Path(tmp) / f"s{seed}_{angle:.0f}" / "photos",
+                    [(angle, 15.0)],
+                    seed=seed,
+                    frame_size=(800, 600),
+                    widths_px=HAIRLINE_WIDTHS_PX,
+                    contrast=0.3,
+                    blur_px=0.5,
+                )
+                p = scene.photo_mm_per_px
+                for ratio in (0.5, 1.0, 2.0):
+                    started = time.perf_counter()
+                    report = run_survey(
+                        scene, Path(tmp) / f"s{seed}_{angle:.0f}" / f"x{ratio}", scene.options(round(ratio * p, 4))
+                    )
+                    found: dict[float, list[bool]] = {}
+                    width_errors: dict[float, list[tuple[float, float, bool]]] = {}
+                    false_mm = true_mm = found_true = found_reported = 0.0
+                    for stage, truth in zip(report["stages"], scene.stages, strict=True):
+                        score = score_stage(stage, truth, max(1.0, 2 * p))
+                        false_mm += score.false_mm
+                        true_mm += score.true_mm
+                        for crack, share in zip(truth, score.found, strict=True):
+                            w = round(crack.width_mm / p, 2)
+                            found.setdefault(w, []).append(share > 0.8)
+                            if share > 0.8:
+                                found_true += crack.length_mm
+                        for crack, share, row in zip(
+                            truth, score.found, rows_along(stage, truth, max(1.0, 2 * p)), strict=True
+                        ):
+                            if share > 0.8 and row is not None:
+                                found_reported += row["length_mm"]
+                                width_errors.setdefault(round(crack.width_mm / p, 2), []).append(
+                                    (
+                                        row["width_mm"] - crack.width_mm,
+                                        row["width_uncertainty_mm"],
+                                        row["below_photo_resolution"],
+                                    )
+                                )
+                    rows.append(
+                        {
+                            "seed": seed,
+                            "angle": angle,
+                            "ratio": ratio,
+                            "photo_mm_per_px": p,
+                            "detection_mm_per_px": report["detection_mm_per_px"],
+                            "recall": {w: float(np.mean(v)) for w, v in sorted(found.items())},
+                            "length_error": found_reported / max(found_true, 1e-9) - 1,
+                            "false_share": false_mm / true_mm,
+                            "width_error_mm": {w: [round(e[0], 3) for e in v] for w, v in sorted(width_errors.items())},
+                            "flagged": {w: [bool(e[2]) for e in v] for w, v in sorted(width_errors.items())},
+                            "seconds": round(time.perf_counter() - started, 1),
+                        }
+                    )
+                    print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mm-per-px", type=float, default=0.1)
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--hairlines", action="store_true", help="hairline recall and widths at 0.5x/1x/2x")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[31])
     args = parser.parse_args(argv)
     import numpy as np
+
+    if args.hairlines:
+        rows = run_hairlines(args.seeds)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=2))
+        return 0
 
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:

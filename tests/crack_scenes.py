@@ -56,6 +56,7 @@ class CrackSurveyScene:
     photos: list[Photo] = field(default_factory=list)
     specimen: Plate | CurvedPanel | None = None
     mesh_path: Path | None = None  # a curved panel's OBJ
+    photo_mm_per_px: float = 0.0  # the first view's nominal sampling at the plate's centre, mm per photo px
 
     def options(self, mm_per_px: float, views: tuple[int, ...] | None = None) -> dict:
         """The crack-survey options a user would send for these photos (only ``views``, by index, if given)."""
@@ -102,6 +103,7 @@ def _place_cracks(
     status: str,
     spacing_mm: float = 12.0,
     edge_mm: float = 8.0,
+    widths_mm: tuple[float, ...] | None = None,
 ) -> list[TrueCrack]:
     cracks: list[TrueCrack] = []
     for _ in range(5000):
@@ -115,7 +117,10 @@ def _place_cracks(
         far = all(np.min(np.linalg.norm(line[:, None] - other[None], axis=2)) > spacing_mm for other in taken)
         if inside and far:
             taken.append(line)
-            cracks.append(TrueCrack(line, float(rng.uniform(0.6, 1.2)), status))
+            width = float(rng.uniform(0.6, 1.2))
+            if widths_mm is not None:  # the classes in turn, counting the cracks placed before
+                width = widths_mm[(len(taken) - 1) % len(widths_mm)]
+            cracks.append(TrueCrack(line, width, status))
     raise RuntimeError(f"no room for {n} cracks {spacing_mm} mm apart")
 
 
@@ -125,11 +130,14 @@ def _grow(rng: np.random.Generator, crack: TrueCrack, extra_mm: float) -> TrueCr
     return TrueCrack(np.vstack([crack.line_mm, more[1:]]), crack.width_mm, "grown")
 
 
-def make_stages(seed: int, width_mm: float, height_mm: float) -> list[list[TrueCrack]]:
-    """Stage 1: five cracks. Stage 2: the same, one of them (listed first) grown by 15 mm, and two new cracks."""
+def make_stages(
+    seed: int, width_mm: float, height_mm: float, widths_mm: tuple[float, ...] | None = None
+) -> list[list[TrueCrack]]:
+    """Stage 1: five cracks. Stage 2: the same, one of them (listed first) grown by 15 mm, and two new cracks.
+    Widths: uniform in 0.6-1.2 mm, or ``widths_mm`` in turn."""
     rng = np.random.default_rng(seed)
     taken: list[np.ndarray] = []
-    first = _place_cracks(rng, 5, width_mm, height_mm, taken, "first")
+    first = _place_cracks(rng, 5, width_mm, height_mm, taken, "first", widths_mm=widths_mm)
     found = _grow_one(rng, first, taken, width_mm, height_mm)
     if found is None:
         raise RuntimeError(f"seed {seed}: no room to grow any crack")
@@ -137,7 +145,8 @@ def make_stages(seed: int, width_mm: float, height_mm: float) -> list[list[TrueC
     taken[index] = grown.line_mm
     unchanged = [TrueCrack(c.line_mm, c.width_mm, "unchanged") for k, c in enumerate(first) if k != index]
     first.insert(0, first.pop(index))  # the grown crack first in both stages
-    return [first, [grown, *unchanged, *_place_cracks(rng, 2, width_mm, height_mm, taken, "new")]]
+    new = _place_cracks(rng, 2, width_mm, height_mm, taken, "new", widths_mm=widths_mm)
+    return [first, [grown, *unchanged, *new]]
 
 
 def _grow_one(
@@ -185,6 +194,15 @@ def oblique_pose(
     return R, centre + distance * direction
 
 
+def nominal_sampling(camera: Camera, width_mm: float, height_mm: float, elevation: float, azimuth: float) -> float:
+    """mm per photo pixel at the centre of a plate seen from :func:`oblique_pose`: the geometric mean of
+    ``distance / f`` across the view and ``distance / (f sin(elevation))`` along it."""
+    R, C = oblique_pose(camera, width_mm, height_mm, elevation, azimuth)
+    distance = float(np.linalg.norm(C - np.array([width_mm / 2, height_mm / 2, 0.0])))
+    f = math.sqrt(camera.fx * camera.fy)
+    return distance / (f * math.sqrt(math.sin(math.radians(elevation))))
+
+
 def _coating(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) float32 grain of the coating around 150: standard deviations 6, 2 and 3 at 0.15, 1 and 3 mm."""
     grain = np.full(shape, 150.0, np.float32)
@@ -197,14 +215,22 @@ def _coating(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
 
 def crack_field(cracks: list[TrueCrack], shape: tuple[int, int]) -> np.ndarray:
     """(H, W) float32 on the texture grid: max over cracks of (half width - distance to its centreline), mm."""
+    return crack_fields(cracks, shape)[0]
+
+
+def crack_fields(cracks: list[TrueCrack], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`crack_field` and (H, W) float32 the width (mm) of the crack that field comes from."""
     field = np.full(shape, -1e3, np.float32)
+    widths = np.zeros(shape, np.float32)
     for crack in cracks:
         canvas = np.full(shape, 255, np.uint8)
         points = np.rint(crack.line_mm / TEXTURE_MM_PER_PX * 16).astype(np.int32).reshape(-1, 1, 2)
         cv2.polylines(canvas, [points], False, 0, 1, cv2.LINE_8, shift=4)
         distance = cv2.distanceTransform(canvas, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * TEXTURE_MM_PER_PX
-        field = np.maximum(field, crack.width_mm / 2 - distance)
-    return field
+        inside = crack.width_mm / 2 - distance
+        widths = np.where(inside > field, np.float32(crack.width_mm), widths)
+        field = np.maximum(field, inside)
+    return field, widths
 
 
 @dataclass(frozen=True)
@@ -300,9 +326,17 @@ def render_photo(
     field_mm: np.ndarray,
     specimen: Plate | CurvedPanel,
     rng: np.random.Generator,
+    widths_mm: np.ndarray | None = None,
+    contrast: float = 0.5,
+    blur_px: float = 0.0,
 ) -> np.ndarray:
-    """(H, W) uint8: the specimen (coating under a light ramp and a directional light, cracks) on a dark
-    background, with noise."""
+    """(H, W) uint8: the specimen (coating under a light ramp and a directional light, cracks ``contrast``
+    darker than the coating) on a dark background, blurred by a Gaussian PSF of ``blur_px``, with noise.
+
+    With ``widths_mm`` (the crack width field of :func:`crack_fields`) a pixel's cover is the exact share of
+    its footprint (taken as a square across the crack) the crack covers, so a hairline narrower than a pixel
+    darkens it by its width over the footprint; without, the edge-only approximation ``0.5 + inside /
+    footprint`` (right for cracks wider than a pixel)."""
     u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
     rays = camera.unproject(np.column_stack([u.ravel(), v.ravel()])) @ R  # R.T @ ray per row
     sy, hit, lit = specimen.trace(C, rays)
@@ -316,9 +350,18 @@ def render_photo(
     # the pixel's footprint on the plate (mm): a crack darkens it by the share of the footprint it covers
     du, dv = np.gradient(xy, axis=1), np.gradient(xy, axis=0)
     footprint = np.sqrt(np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]))
-    cover = np.clip(0.5 + inside / footprint, 0.0, 1.0)
+    if widths_mm is None:
+        cover = np.clip(0.5 + inside / footprint, 0.0, 1.0)
+    else:
+        w = cv2.remap(widths_mm, col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
+        d = np.maximum(w / 2 - inside, 0.0)  # distance from the crack's centreline
+        overlap = np.minimum(d + w / 2, footprint / 2) - np.maximum(d - w / 2, -footprint / 2)
+        cover = np.clip(overlap / footprint, 0.0, 1.0)
     light = 0.75 + 0.5 * (0.6 * xy[..., 0] / width_mm + 0.4 * (1 - xy[..., 1] / height_mm))  # from the top right
-    image = np.where(on_plate, albedo * light * shade * (1 - 0.5 * cover), 45.0) + rng.normal(0, 3.0, on_plate.shape)
+    image = np.where(on_plate, albedo * light * shade * (1 - contrast * cover), 45.0)
+    if blur_px > 0:
+        image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), blur_px)
+    image = image + rng.normal(0, 3.0, on_plate.shape)
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
@@ -330,6 +373,9 @@ def make_crack_survey(
     height_mm: float = 150.0,
     frame_size: tuple[int, int] = (900, 700),
     panel_radius_mm: float | None = None,
+    widths_px: tuple[float, ...] | None = None,
+    contrast: float = 0.5,
+    blur_px: float = 0.0,
 ) -> CrackSurveyScene:
     """Render two load stages, each photographed from ``views`` (elevation, azimuth) degrees, to PNGs.
 
@@ -337,6 +383,11 @@ def make_crack_survey(
     whose mesh is written to ``out_dir / "panel.obj"`` (the scene's ``mesh_path``). The camera is re-set
     between stages (a few mm and a degree off); control points are the specimen's corners and
     ``MARKS_MM`` (in surface coordinates), projected through the true camera with 0.3 px noise.
+
+    Hairline scenes: ``widths_px`` gives the cracks' widths in turn in photo pixels of the first view (its
+    nominal sampling at the plate's centre, ``scene.photo_mm_per_px``; a plate only), rendered with exact
+    sub-pixel cover, ``contrast`` (share of the coating's brightness a crack takes away) and a Gaussian
+    PSF of ``blur_px`` photo pixels.
     """
     rng = np.random.default_rng(seed)
     w, h = frame_size
@@ -344,7 +395,14 @@ def make_crack_survey(
     specimen = (
         Plate(width_mm, height_mm) if panel_radius_mm is None else CurvedPanel(width_mm, height_mm, panel_radius_mm)
     )
-    scene = CrackSurveyScene(width_mm, height_mm, camera, make_stages(seed, width_mm, height_mm), specimen=specimen)
+    widths_mm = None
+    sampling = nominal_sampling(camera, width_mm, height_mm, *views[0])
+    if widths_px is not None:
+        if panel_radius_mm is not None:
+            raise ValueError("hairline widths in photo px are for a plate")
+        widths_mm = tuple(w * sampling for w in widths_px)
+    stages = make_stages(seed, width_mm, height_mm, widths_mm)
+    scene = CrackSurveyScene(width_mm, height_mm, camera, stages, specimen=specimen, photo_mm_per_px=sampling)
     shape = (int(round(height_mm / TEXTURE_MM_PER_PX)) + 1, int(round(width_mm / TEXTURE_MM_PER_PX)) + 1)
     coating = _coating(rng, shape)
     model = specimen.to_model(np.array([[0, 0], [width_mm, 0], [0, height_mm], [width_mm, height_mm], *MARKS_MM]))
@@ -354,14 +412,85 @@ def make_crack_survey(
         specimen.write_mesh(scene.mesh_path)
     extent = specimen.chord_mm if isinstance(specimen, CurvedPanel) else width_mm
     for s, cracks in enumerate(scene.stages):
-        field_mm = crack_field(cracks, shape)
+        field_mm, width_field = crack_fields(cracks, shape)
+        exact = width_field if widths_px is not None else None
         for k, (elevation, azimuth) in enumerate(views):
             R, C = oblique_pose(camera, extent, height_mm, elevation + rng.uniform(-1, 1), azimuth + rng.uniform(-2, 2))
             C = C + rng.uniform(-3, 3, 3)
-            image = render_photo(camera, R, C, coating, field_mm, specimen, rng)
+            image = render_photo(camera, R, C, coating, field_mm, specimen, rng, exact, contrast, blur_px)
             path = out_dir / f"stage{s + 1}_view{k + 1}_{int(elevation)}deg.png"
             cv2.imwrite(str(path), image)
             pixels = camera.project((model - C) @ R.T) + rng.normal(0, 0.3, (len(model), 2))
             points = [{"pixel": p.tolist(), "model": m.tolist()} for p, m in zip(pixels, model, strict=True)]
             scene.photos.append(Photo(path, s, k, R, C, points))
     return scene
+
+
+def run_survey(scene: CrackSurveyScene, root: Path, options: dict) -> dict:
+    """Run every stage of a crack survey in this process over a workspace at ``root`` (no API, no database)
+    on the scene's photos with ``options``; return its ``report.json``."""
+    from workers.pipeline import PIPELINES, run_stage
+    from workers.workspace import JobWorkspace
+
+    ws = JobWorkspace(root)
+    ws.root.mkdir(parents=True, exist_ok=True)
+    names = {p["image"] for stage in options["stages"] for p in stage["photos"]}
+    ws.save_config(options)
+    ws.save_inputs([{"name": p.path.name, "path": str(p.path)} for p in scene.photos if p.path.name in names])
+    for spec in PIPELINES["crack_survey"]:
+        run_stage(ws, "crack_survey", spec.name)
+    return ws.load_report()
+
+
+def dense_line(line: np.ndarray, step: float = 0.05) -> np.ndarray:
+    """(M, 2) points every ``step`` mm along a polyline (N, 2)."""
+    along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))]
+    s = np.arange(0.0, along[-1] + step, step)
+    return np.column_stack([np.interp(s, along, line[:, 0]), np.interp(s, along, line[:, 1])])
+
+
+@dataclass(frozen=True)
+class CrackScore:
+    """How a survey's report found one stage's true cracks."""
+
+    found: list[float]  # per true crack, the share of its centreline within tolerance of a reported crack
+    widths_mm: list[float | None]  # per true crack, the mean width of the reported crack along it (None: none)
+    false_mm: float  # reported length farther than tolerance from every true crack
+    true_mm: float  # total true length
+
+
+def score_stage(stage: dict, truth: list[TrueCrack], tolerance_mm: float) -> CrackScore:
+    """Score one stage of ``report.json`` against its true cracks: recall by centreline, false length, and the
+    width of the reported crack that covers most of each true crack."""
+    from scipy.spatial import cKDTree
+
+    reported = [np.concatenate([dense_line(np.array(p)) for p in c["paths_mm"] if len(p) > 1]) for c in stage["cracks"]]
+    trees = [cKDTree(points) for points in reported]
+    found, widths = [], []
+    for crack in truth:
+        points = dense_line(crack.line_mm)
+        near = [tree.query(points)[0] <= tolerance_mm for tree in trees]
+        found.append(float(np.logical_or.reduce(near).mean()) if near else 0.0)
+        best = int(np.argmax([n.sum() for n in near])) if near else -1
+        widths.append(stage["cracks"][best]["mean_width_mm"] if best >= 0 and near[best].mean() > 0.5 else None)
+    every_true = cKDTree(np.concatenate([dense_line(c.line_mm) for c in truth]))
+    false = sum(0.05 * float((every_true.query(points)[0] > tolerance_mm).sum()) for points in reported)
+    return CrackScore(found, widths, false, sum(c.length_mm for c in truth))
+
+
+def rows_along(stage: dict, truth: list[TrueCrack], tolerance_mm: float) -> list[dict | None]:
+    """Per true crack, the reported crack of ``stage`` (``report.json``) with most of its length within
+    ``tolerance_mm`` of it, if over half (None: none)."""
+    from scipy.spatial import cKDTree
+
+    out: list[dict | None] = []
+    for crack in truth:
+        tree = cKDTree(dense_line(crack.line_mm))
+        best, best_share = None, 0.5
+        for row in stage["cracks"]:
+            points = np.concatenate([dense_line(np.array(q)) for q in row["paths_mm"] if len(q) > 1])
+            share = float((tree.query(points)[0] <= tolerance_mm).mean())
+            if share > best_share:
+                best, best_share = row, share
+        out.append(best)
+    return out

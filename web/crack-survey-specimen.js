@@ -42,7 +42,7 @@ export function specimenFields() {
   const meshChoice = choice("mesh", "Mesh model", false);
   const plate = plateFields();
   const model = modelFields(changed);
-  const resolution = numberField("mm-per-px", "Resolution, mm per pixel", { value: "0.2" });
+  const resolution = numberField("mm-per-px", "Output resolution, mm per pixel (optional)", { placeholder: "the photos' own" });
   const kind = () => (meshChoice.input.checked ? "mesh" : "plate");
   const sync = () => {
     plate.node.hidden = kind() !== "plate";
@@ -60,7 +60,8 @@ export function specimenFields() {
     h("legend", {}, "Specimen"),
     h("div", { class: "row specimen-kind", role: "radiogroup", "aria-label": "Specimen model" }, plateChoice.node, meshChoice.node),
     plate.node, model.node, resolution.node,
-    h("p", { class: "muted small" }, "Of the rectified images the cracks are found in: about a third of the finest crack's width."));
+    h("p", { class: "muted small" }, "Of the rectified images and overlays you download. Cracks are found at the photos' own sampling "
+      + "whatever you choose; empty: the photos' own sampling."));
   return {
     node,
     kind,
@@ -71,7 +72,9 @@ export function specimenFields() {
     modelFile: () => (kind() === "mesh" ? model.file() : null),
     read: () => ({
       specimen: kind() === "mesh" ? model.read() : plate.read(),
-      mm_per_px: typedNumber(resolution.input, "Specimen: give the resolution of the rectified images in mm per pixel."),
+      ...(resolution.input.value.trim() === ""
+        ? {}
+        : { mm_per_px: typedNumber(resolution.input, "Specimen: the output resolution must be a number of mm per pixel.") }),
     }),
     /** Call `listener` whenever the specimen's kind or model changes; answers the function that stops it. */
     subscribe(listener) {

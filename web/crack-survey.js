@@ -195,6 +195,10 @@ function stepFacts(step, previous, outputUrls, plane) {
       ["Mean width", formatNumber(step.mean_width_mm, 2, "mm")],
       ["Max width", formatNumber(step.max_width_mm, 2, "mm")],
       ["Seen", formatNumber(100 * step.coverage, 0, "%")],
+      ["Photo sampling", formatNumber(step.photo_mm_per_px, 3, "mm/px"), { "data-testid": "stage-photo-sampling" }],
+      ["Detection raster", formatNumber(step.detection_mm_per_px, 3, "mm/px"), { "data-testid": "stage-detection-raster" }],
+      ["Smallest detectable width", formatNumber(step.smallest_detectable_width_mm, 2, "mm"),
+        { "data-testid": "stage-smallest-width", title: "at 30 % contrast against the coating" }],
       ...(plane ? plane.rows : []),
     ]),
     step.overlay && outputUrls.get(step.overlay) ? h("p", { class: "small" }, h("a", {
@@ -263,14 +267,16 @@ function crackTable(step, onSelect) {
     h("h3", { id: "crack-table-heading" }, `Cracks of ${step.label} (${cracks.length})`),
     dataTable({
       caption: `Cracks of ${step.label}`,
-      columns: [{ label: "Crack" }, { label: "Status" }, { label: "Length mm", num: true }, { label: "Mean width mm", num: true },
-        { label: "Max width mm", num: true }, { label: "Orientation", num: true }, { label: "Growth mm", num: true }],
+      columns: [{ label: "Crack" }, { label: "Status" }, { label: "Length mm", num: true }, { label: "Width mm", num: true },
+        { label: "Mean width mm", num: true }, { label: "Max width mm", num: true }, { label: "Orientation", num: true },
+        { label: "Growth mm", num: true }],
       rows: cracks.map((crack) => ({
         attrs: { "data-testid": "crack-row", "data-crack": crack.id, "data-status": crack.status, class: "clickable" },
         cells: [
           h("button", { type: "button", class: "link-button", "aria-label": `Show crack ${crack.id} on the map` }, `#${crack.id}`),
           h("span", { class: "nowrap" }, swatch(crack.status), ` ${statusText(crack.status)}`),
-          formatNumber(crack.length_mm, 1), formatNumber(crack.mean_width_mm, 2), formatNumber(crack.max_width_mm, 2),
+          formatNumber(crack.length_mm, 1), widthText(crack),
+          formatNumber(crack.mean_width_mm, 2), formatNumber(crack.max_width_mm, 2),
           degrees(crack.orientation_deg), crack.status === "grown" ? signed(crack.growth_mm) : "–",
         ],
       })),
@@ -346,6 +352,17 @@ function meshPlane(report) {
       ["Plane y axis", vector(plane.y_axis, 3), { "data-testid": "plane-y-axis" }],
     ],
   };
+}
+
+/** A crack's width with its uncertainty, or "< x (below photo resolution)" where the photos cannot resolve it. */
+function widthText(crack) {
+  if (typeof crack.width_mm !== "number") return "–";
+  if (crack.below_photo_resolution) {
+    const bound = crack.width_mm + (crack.width_uncertainty_mm || 0);
+    return h("span", { "data-testid": "below-resolution", title: "narrower than the photos resolve" },
+      `< ${formatNumber(bound, 2)} (below photo resolution)`);
+  }
+  return `${formatNumber(crack.width_mm, 2)} ± ${formatNumber(crack.width_uncertainty_mm, 2)}`;
 }
 
 function degrees(value) {

@@ -50,6 +50,9 @@ class MosaicConfig(BaseModel):
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where gpu_kernels run; auto: CUDA when present
     threads: int = Field(0, ge=0, le=64)  # threads matching frame pairs on the CPU; 0: one per CPU core
     working_max_px: int = Field(2048, ge=256, le=20000)  # longest side of the working copies, px
+    # planar mode: longest side the features are found at, px (about 0.6 MP per frame, as cv2.Stitcher's
+    # registration_resol); their tie points are refined on the working copies. Ortho mode: working copies
+    registration_max_px: int = Field(1024, ge=128, le=20000)
     # sift: rotation- and scale-invariant (UAV frames); harris_ncc: Harris corners matched by normalised
     # cross-correlation of windows, for strips whose frames keep their orientation and scale (aerial)
     feature_type: Literal["sift", "harris_ncc"] = "sift"
@@ -209,7 +212,13 @@ class CrackSurveyConfig(BaseModel):
     specimen: Specimen
     # in load order; each stage is compared with the one before
     stages: list[LoadStage] = Field(min_length=1, max_length=MAX_LOAD_STEPS)
-    mm_per_px: float = Field(0.2, ge=0.005, le=50.0)  # resolution of the rectified specimen images, mm per px
+    # resolution of the rectified specimen images (COGs, overlays), mm per px; None: the photos' own sampling
+    # on the specimen. Cracks are detected and measured on a raster set by the photos alone (below), so
+    # counts and lengths do not depend on it
+    mm_per_px: float | None = Field(None, ge=0.005, le=50.0)
+    # the detection raster is this many times finer than the photos' sampling on the specimen (>= 1: a
+    # crack one photo pixel wide spans at least one raster pixel)
+    detection_oversampling: float = Field(1.25, ge=1.0, le=4.0)
     max_rms_px: float = Field(5.0, gt=0.0, le=100.0)  # a photo whose control points fit worse fails the job, px
     # how a stage with several photos is composed: at each point the photo that sees it most
     # frontally at the finest resolution ("best"), or the mean of all photos that see it ("average")
@@ -244,8 +253,10 @@ class CrackSurveyConfig(BaseModel):
 
     @field_validator("mm_per_px")
     @classmethod
-    def _check_raster(cls, mm_per_px: float, info: ValidationInfo) -> float:
+    def _check_raster(cls, mm_per_px: float | None, info: ValidationInfo) -> float | None:
         specimen = info.data.get("specimen")  # a mesh's size is known once the mesh is read (the API)
+        if mm_per_px is None:  # the photos' sampling: known once they are oriented (rectify_specimen checks)
+            return None
         if specimen is not None and specimen.width_mm is not None and specimen.height_mm is not None:
             check_raster_size(specimen.width_mm, specimen.height_mm, mm_per_px)
         return mm_per_px

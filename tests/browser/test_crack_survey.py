@@ -319,7 +319,8 @@ def test_camera_of_a_calibration_job_is_sent_by_its_id(signed_in_page, live_serv
     field = re.search(rb'name="options"\r\n\r\n(.*?)\r\n--', body, re.S)
     assert field is not None, body[:500]
     options = json.loads(field[1])
-    assert options["calibration_job"] == 41 and "camera" not in options and options["mm_per_px"] == 0.2
+    # no resolution typed: the server rectifies at the photos' own sampling
+    assert options["calibration_job"] == 41 and "camera" not in options and "mm_per_px" not in options
     (stage,) = options["stages"]
     assert stage["label"] == "Load step 1" and "load" not in stage and stage["photos"][0]["image"] == photo.path.name
     points = stage["photos"][0]["control_points"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import struct
 
+import cv2
 import numpy as np
 import pytest
 
@@ -240,3 +241,37 @@ def test_a_plates_interpolated_maps_match_the_exact_ones() -> None:
     error = np.hypot(map_x - uv[..., 0], map_y - uv[..., 1])
     assert error[seen].max() < 0.01
     assert np.max(np.abs(density[seen] / exact_density[seen] - 1)) < 1e-4
+
+
+def test_photo_sampling_on_a_coarse_raster_is_the_photos() -> None:
+    """The sampling measured on a 0.5 mm raster, as ``rectify_specimen`` measures it before choosing the
+    detection raster, agrees with the same measure on a 0.1 mm raster and with the pose's nominal value."""
+    from tests.crack_scenes import nominal_sampling
+    from workers.algorithms.specimen import photo_sampling
+
+    camera = Camera(900, 700, 945.0, 945.0, 456.0, 346.0, k1=-0.09, k2=0.04, t1=3e-4, t2=-2e-4)
+    for elevation in (30.0, 60.0):
+        pose = oblique_pose(camera, 200.0, 150.0, elevation, 0.0)
+        coarse = photo_sampling(camera, [pose], plate_surface(200.0, 150.0, 0.5))
+        fine = photo_sampling(camera, [pose], plate_surface(200.0, 150.0, 0.1))
+        assert abs(coarse / fine - 1) < 0.01, (coarse, fine)
+        assert abs(coarse / nominal_sampling(camera, 200.0, 150.0, elevation, 0.0) - 1) < 0.05
+    assert np.isnan(photo_sampling(camera, [], plate_surface(200.0, 150.0, 0.5)))
+
+
+def test_resampled_raster_keeps_positions_on_the_plane() -> None:
+    """A dot at (x, y) mm stays at (x, y) mm when a 0.1 mm raster is resampled to 0.25 mm and to 0.05 mm."""
+    from workers.algorithms.specimen import raster_shape, resample_raster
+
+    dot = np.full(raster_shape(40.0, 30.0, 0.1), 200, np.uint8)
+    dot[180, 120] = 0  # (x, y) = (12, 18) mm
+    image = cv2.GaussianBlur(dot, (0, 0), 3.0)
+    mask = np.ones(image.shape, bool)
+    for out in (0.25, 0.05):
+        shape = raster_shape(40.0, 30.0, out)
+        resampled, seen = resample_raster(image, mask, 0.1, shape, out)
+        assert resampled.shape == shape and seen.all()
+        weight = np.maximum(200.0 - resampled, 0.0)
+        rows, cols = np.indices(shape)
+        x, y = (weight * cols).sum() / weight.sum() * out, (weight * rows).sum() / weight.sum() * out
+        assert np.hypot(x - 12.0, y - 18.0) < 0.02, (out, x, y)  # the dot's centroid, mm

@@ -29,6 +29,7 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     high = model.high if cfg.threshold_high is None else cfg.threshold_high
     if low > high:
         raise PipelineError(f"options.threshold_low ({low}) is above threshold_high ({high})")
+    mm_per_px = ws.load_surface().mm_per_px  # the detection raster's, set by the photos' sampling
     pixels = []
     for s in range(len(cfg.stages)):
         progress(s / len(cfg.stages), f"load step {s + 1}/{len(cfg.stages)}")
@@ -39,9 +40,9 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
             model=model,
             low=low,
             high=high,
-            edge_margin_px=int(np.ceil(cfg.edge_margin_mm / cfg.mm_per_px)),
+            edge_margin_px=int(np.ceil(cfg.edge_margin_mm / mm_per_px)),
             min_contrast=cfg.min_crack_contrast,
-            background_px=background_px(cfg.mm_per_px),
+            background_px=background_px(mm_per_px),
         )
         ws.save_crack_mask(s, mask)
         pixels.append(int(mask.sum()))

@@ -31,10 +31,10 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         progress(s / len(cfg.stages), f"load step {s + 1}/{len(cfg.stages)}")
         mask = ws.load_crack_mask(s)
         image, _ = ws.load_rectified(s)
-        coverage = crack_coverage(darkening(to_gray(image), mask, background_px(cfg.mm_per_px)), mask)
+        coverage = crack_coverage(darkening(to_gray(image), mask, background_px(surface.mm_per_px)), mask)
         cracks = [
             along_surface(c, surface)
-            for c in measure_cracks(mask, cfg.mm_per_px, coverage=coverage, min_length_mm=cfg.min_crack_length_mm)
+            for c in measure_cracks(mask, surface.mm_per_px, coverage=coverage, min_length_mm=cfg.min_crack_length_mm)
         ]
         summary = summarise_cracks(cracks)
         ws.save_measured_cracks(

@@ -37,6 +37,9 @@ from .geometry import (
     Crack as Crack,
 )
 from .geometry import (
+    WidthEstimate as WidthEstimate,
+)
+from .geometry import (
     background_px as background_px,
 )
 from .geometry import (
@@ -44,6 +47,9 @@ from .geometry import (
 )
 from .geometry import (
     darkening as darkening,
+)
+from .geometry import (
+    estimate_width as estimate_width,
 )
 from .geometry import (
     length_histogram as length_histogram,

@@ -46,8 +46,14 @@ from .surface import (
     mesh_surface as mesh_surface,
 )
 from .surface import (
+    photo_sampling as photo_sampling,
+)
+from .surface import (
     plate_surface as plate_surface,
 )
 from .surface import (
     raster_shape as raster_shape,
+)
+from .surface import (
+    resample_raster as resample_raster,
 )

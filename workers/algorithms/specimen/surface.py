@@ -402,3 +402,61 @@ def compose_views(
             mean = total[rows] / np.maximum(count[rows], 1.0)[..., None]
             image[rows] = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
     return image, best > 0, best
+
+
+def photo_sampling(camera: Camera, poses: list[tuple[np.ndarray, np.ndarray]], surface: Surface) -> float:
+    """The photos' own sampling on the specimen, mm per photo pixel: the median over the points of
+    ``surface`` some photo sees of ``1 / sqrt(density)`` (see :func:`rectification_maps`), each point taken
+    from the photo that samples it most finely (as :func:`compose_views`' ``best``).
+
+    A coarse ``surface`` (a few hundred pixels across) is enough: the density varies smoothly over it.
+
+    Parameters
+    ----------
+    camera : the camera of every photo.
+    poses : per photo ``(R, C)``, (3, 3) world -> camera rotation and (3,) centre, mm.
+    surface : the specimen's raster, any resolution.
+
+    Returns
+    -------
+    mm per photo pixel; NaN when no photo sees the specimen.
+    """
+    best = np.zeros(surface.shape, np.float32)
+    for R, C in poses:
+        depth = photo_depth(surface.mesh, camera, R, C) if surface.mesh is not None else None
+        _, _, density = rectification_maps(camera, R, C, surface, slice(None), depth)
+        np.maximum(best, density, out=best)
+    seen = best > 0
+    return float(np.median(1.0 / np.sqrt(best[seen]))) if seen.any() else math.nan
+
+
+def resample_raster(
+    image: np.ndarray, mask: np.ndarray, mm_per_px: float, shape: tuple[int, int], out_mm_per_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A rectified raster at ``mm_per_px`` resampled to ``shape`` at ``out_mm_per_px`` on the same plane
+    (pixel (col, row) centred on ``(col, row) * mm_per_px`` in both).
+
+    Going coarser, the image is low-passed first (a Gaussian of 0.5 output px, as ``cv2.INTER_AREA`` roughly
+    averages) so grain does not alias; going finer, it is interpolated bicubically (no new detail is made).
+
+    Parameters
+    ----------
+    image : (H, W, 3) or (H, W) uint8.
+    mask : (H, W) bool, where the photos see the specimen.
+    shape : (rows, cols) of the output.
+
+    Returns
+    -------
+    (rows, cols[, 3]) uint8 image and (rows, cols) bool mask (nearest).
+    """
+    if mm_per_px <= 0 or out_mm_per_px <= 0:
+        raise ValueError("resolutions must be positive")
+    scale = out_mm_per_px / mm_per_px
+    if scale > 1.0:
+        image = cv2.GaussianBlur(image, (0, 0), 0.5 * math.sqrt(scale * scale - 1.0))
+    cols = np.arange(shape[1], dtype=np.float32) * np.float32(scale)
+    rows = np.arange(shape[0], dtype=np.float32) * np.float32(scale)
+    map_x, map_y = np.meshgrid(cols, rows)
+    out = cv2.remap(image, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    seen = cv2.remap(mask.astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+    return out, seen.astype(bool)
