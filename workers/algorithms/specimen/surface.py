@@ -458,5 +458,10 @@ def resample_raster(
     rows = np.arange(shape[0], dtype=np.float32) * np.float32(scale)
     map_x, map_y = np.meshgrid(cols, rows)
     out = cv2.remap(image, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    seen = cv2.remap(mask.astype(np.uint8), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+    # The nearest input pixel, but never one past the specimen's far edge: both rasters span the same specimen
+    # from 0, so that edge is the last output centre, and the input pixel nearest to it may lie just beyond it
+    # (unseen: outside the specimen) although the edge itself is seen.
+    near_x = np.minimum(np.rint(map_x), np.floor(cols[-1])).astype(np.float32)
+    near_y = np.minimum(np.rint(map_y), np.floor(rows[-1])).astype(np.float32)
+    seen = cv2.remap(mask.astype(np.uint8), near_x, near_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
     return out, seen.astype(bool)
