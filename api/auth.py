@@ -23,7 +23,7 @@ from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from api.deps import DbDep, SettingsDep
-from api.errors import ApiError, NotFoundError
+from api.errors import ForbiddenError, NotFoundError, UnauthorizedError
 from core import accounts
 from core.accounts import Principal
 from core.db import Database, Flight, Job
@@ -35,19 +35,6 @@ READ_METHODS = frozenset({"GET", "HEAD"})
 # renew itself past its expiry or its owner's revoked token.
 SIGNED_ROUTES = frozenset({"tile", "load_step_tile", "stage_tile", "download_output", "job_events"})
 _AS_INT = TypeAdapter(int)
-
-
-class UnauthorizedError(ApiError):
-    """No token, or one that is unknown or revoked."""
-
-    status_code = 401
-    headers = {"WWW-Authenticate": 'Bearer realm="fotoskhema"'}
-
-
-class ForbiddenError(ApiError):
-    """A valid token that may not do this (an admin route)."""
-
-    status_code = 403
 
 
 # Declares the scheme in the OpenAPI schema (the docs page's "Authorize" button); a missing header is ours to answer.

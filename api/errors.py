@@ -25,6 +25,19 @@ class ApiError(Exception):
         self.detail = detail
 
 
+class UnauthorizedError(ApiError):
+    """No token, or one that is unknown or revoked."""
+
+    status_code = 401
+    headers = {"WWW-Authenticate": 'Bearer realm="fotoskhema"'}
+
+
+class ForbiddenError(ApiError):
+    """A valid token that may not do this (an admin route)."""
+
+    status_code = 403
+
+
 class NotFoundError(ApiError):
     status_code = 404
 

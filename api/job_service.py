@@ -200,8 +200,9 @@ def delete_flight(db: Database, settings: Settings, flight_id: int) -> None:
         flight = s.get(Flight, flight_id)
         if flight is None:
             raise NotFoundError(f"flight {flight_id} not found")
-        job_ids = list(s.scalars(select(Job.id).where(Job.flight_id == flight_id)))
-        for job in s.scalars(select(Job).where(Job.flight_id == flight_id)):
+        jobs = list(s.scalars(select(Job).where(Job.flight_id == flight_id)))
+        job_ids = [job.id for job in jobs]
+        for job in jobs:
             s.delete(job)
         s.delete(flight)
     for job_id in job_ids:

@@ -19,6 +19,7 @@ import threading
 import time
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from functools import lru_cache
 from pathlib import Path
 
 from sqlalchemy import select, update
@@ -109,9 +110,13 @@ def revoke_user_tokens(db: Database, name: str) -> int:
         return len(live)
 
 
-def list_users(db: Database) -> list[tuple[str, bool, list[TokenInfo]]]:
+def list_users(db: Database, user_id: int | None = None) -> list[tuple[str, bool, list[TokenInfo]]]:
+    """Every user (or the one ``user_id``) with their tokens."""
+    query = select(User).order_by(User.id)
+    if user_id is not None:
+        query = query.where(User.id == user_id)
     with db.session() as s:
-        return [(u.name, u.is_admin, [_info(t) for t in u.tokens]) for u in s.scalars(select(User).order_by(User.id))]
+        return [(u.name, u.is_admin, [_info(t) for t in u.tokens]) for u in s.scalars(query)]
 
 
 def has_users(db: Database) -> bool:
@@ -192,9 +197,10 @@ def _info(token: ApiToken) -> TokenInfo:
 # -- Signed URLs ---------------------------------------------------------------------------------
 
 
+@lru_cache(maxsize=16)
 def signing_key(secret: str, data_dir: Path) -> bytes:
     """``secret`` if set, else the random key in ``<data_dir>/secret_key``, made (0600) on first use, so every
-    API process on one data dir signs alike."""
+    API process on one data dir signs alike. Read once per process: every signed tile request asks for it."""
     if secret:
         return secret.encode()
     path = data_dir / "secret_key"

@@ -230,18 +230,11 @@ def _allow_jobs_without_flight(engine: Engine) -> None:
     column = next(c for c in inspect(engine).get_columns("jobs") if c["name"] == "flight_id")
     if column["nullable"]:
         return
-    table = Job.__table__
     with engine.begin() as conn:
         if engine.dialect.name != "sqlite":
             conn.execute(text("ALTER TABLE jobs ALTER COLUMN flight_id DROP NOT NULL"))
             return
-        conn.execute(text("ALTER TABLE jobs RENAME TO jobs_before_upgrade"))
-        for index in table.indexes:  # type: ignore[attr-defined]
-            conn.execute(text(f"DROP INDEX IF EXISTS {index.name}"))
-        table.create(conn)  # type: ignore[attr-defined]
-        names = ", ".join(c.name for c in table.columns)  # type: ignore[attr-defined]
-        conn.execute(text(f"INSERT INTO jobs ({names}) SELECT {names} FROM jobs_before_upgrade"))
-        conn.execute(text("DROP TABLE jobs_before_upgrade"))
+        _rebuild(conn, Base.metadata.tables["jobs"])
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

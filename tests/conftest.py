@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -177,6 +178,18 @@ class LiveService:
     def client(self, timeout: float = 60.0) -> httpx.Client:
         """An HTTP client of the service that sends the admin's token."""
         return httpx.Client(base_url=self.url, headers=self.headers, timeout=timeout)
+
+    def submit(self, path: str, files: list[Any], options: dict[str, Any]) -> int:
+        """POST a job of photos and JSON ``options`` (calibrations, rigs, crack surveys); its id once accepted."""
+        response = httpx.post(
+            f"{self.url}{path}",
+            files=files,
+            data={"options": json.dumps(options)},
+            timeout=60,
+            headers=self.headers,
+        )
+        assert response.status_code == 202, response.text
+        return int(response.json()["id"])
 
     def wait_for_job(self, job_id: int, timeout: float = 240.0) -> dict:
         deadline = time.monotonic() + timeout

@@ -19,17 +19,14 @@ def _user_out(name: str, is_admin: bool, tokens: list[accounts.TokenInfo]) -> Us
 
 
 def _token_out(t: accounts.TokenInfo) -> TokenOut:
-    return TokenOut(
-        id=t.id, user=t.user, prefix=t.prefix, label=t.label, created_at=t.created_at,
-        last_used_at=t.last_used_at, revoked=t.revoked,
-    )  # fmt: skip
+    return TokenOut.model_validate(t, from_attributes=True)
 
 
 @router.get("/me", response_model=UserOut)
 def me(principal: UserDep, db: DbDep) -> UserOut:
     """The user of the token sent, with their tokens (never the secrets)."""
-    name, is_admin, tokens = next(u for u in accounts.list_users(db) if u[0] == principal.name)
-    return _user_out(name, is_admin, tokens)
+    (user,) = accounts.list_users(db, principal.user_id)
+    return _user_out(*user)
 
 
 @router.get("/users", response_model=list[UserOut])

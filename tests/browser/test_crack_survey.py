@@ -17,7 +17,6 @@ import re
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
 
@@ -260,15 +259,7 @@ def test_failed_survey_shows_its_error(signed_in_page, live_service, scene: Crac
     options = json.loads(json.dumps(scene.options(MM_PER_PX)))  # the scene's own lists stay as they are
     options["stages"][1]["photos"][0]["control_points"][5]["pixel"][0] += 60.0  # a point clicked off its mark
     files = [("files", (p.name, p.read_bytes(), "image/png")) for p in scene.paths()]
-    response = httpx.post(
-        f"{live_service.url}/api/crack-surveys",
-        files=files,
-        data={"options": json.dumps(options)},
-        timeout=60,
-        headers=live_service.headers,
-    )
-    assert response.status_code == 202, response.text
-    job = live_service.wait_for_job(response.json()["id"], timeout=120)
+    job = live_service.wait_for_job(live_service.submit("/api/crack-surveys", files, options), timeout=120)
     assert job["status"] == "failed"
 
     page.goto(f"{live_service.url}/#/jobs/{job['id']}")  # a crack survey's job page is its survey page

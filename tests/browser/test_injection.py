@@ -141,15 +141,7 @@ def hostile_survey(live_service: Any, tmp_path_factory: pytest.TempPathFactory) 
         (photo,) = step["photos"]
         files.append(("files", (SURVEY_PHOTOS[s], photos[photo["image"]].read_bytes(), "image/png")))
         photo["image"] = SURVEY_PHOTOS[s]
-    response = httpx.post(
-        f"{live_service.url}/api/crack-surveys",
-        files=files,
-        data={"options": json.dumps(options)},
-        timeout=60,
-        headers=live_service.headers,
-    )
-    assert response.status_code == 202, response.text
-    job = live_service.wait_for_job(response.json()["id"], timeout=180)
+    job = live_service.wait_for_job(live_service.submit("/api/crack-surveys", files, options), timeout=180)
     assert job["status"] == "succeeded", f"crack survey ended {job['status']}: {job['error']}"
     return job
 

@@ -64,15 +64,7 @@ def _numbers(text: str) -> list[float]:
 
 
 def _post_job(live_service: Any, path: str, files: list[tuple[str, tuple[str, bytes, str]]], options: dict) -> dict:
-    response = httpx.post(
-        f"{live_service.url}{path}",
-        files=files,
-        data={"options": json.dumps(options)},
-        timeout=60,
-        headers=live_service.headers,
-    )
-    assert response.status_code == 202, response.text
-    job = live_service.wait_for_job(response.json()["id"], timeout=120)
+    job = live_service.wait_for_job(live_service.submit(path, files, options), timeout=120)
     assert job["status"] == "succeeded", f"{path} job ended {job['status']}: {job['error']}"
     return job
 
