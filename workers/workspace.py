@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -225,6 +226,20 @@ class JobWorkspace:
 
     def save_coverage(self, coverage: Coverage) -> None:
         self._save_json(_COVERAGE, coverage.to_json())
+
+    def _native_image_file(self, index: int) -> Path:
+        return self.root / "native" / f"frame_{index:04d}.npy"
+
+    def save_native_image(self, index: int, image: np.ndarray) -> None:
+        """``(H, W, 3) uint8`` BGR: the whole photo, for a mosaic at its own resolution (scratch)."""
+        _save_npy(self._native_image_file(index), image)
+
+    def load_native_image(self, index: int, mmap: bool = False) -> np.ndarray:
+        return _load_npy(self._native_image_file(index), mmap)
+
+    def remove_native_images(self) -> None:
+        """Drop the full photos ``compose_mosaic`` decoded: the job's inputs keep them, at a tenth of the size."""
+        shutil.rmtree(self.root / "native", ignore_errors=True)
 
     def mosaic_scratch_path(self) -> Path:
         """The GeoTIFF ``compose_mosaic`` writes block by block before it becomes the COG."""

@@ -101,7 +101,14 @@ def test_gps_flight_is_placed_within_one_gsd(nadir) -> None:
 def test_cog_pixels_show_the_ground_at_their_map_position(nadir) -> None:
     """Every mosaic pixel, taken to the texture through its map coordinates, shows the same colour."""
     flight, _, ws = nadir
-    with rasterio.open(ws.mosaic_path()) as src:
+    diff = ground_colour_error(flight, ws.mosaic_path())
+    assert diff < 10.0, f"mean colour difference {diff:.1f} levels: mosaic misplaced or blurred"
+
+
+def ground_colour_error(flight: SyntheticFlight, path: Path) -> float:
+    """Mean |mosaic - texture| colour, levels, over the mosaic's inner pixels, each taken to the texture
+    through its map coordinates."""
+    with rasterio.open(path) as src:
         rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
         mask = src.dataset_mask() > 0
         rows, cols = np.mgrid[0 : src.height, 0 : src.width]
@@ -112,9 +119,43 @@ def test_cog_pixels_show_the_ground_at_their_map_position(nadir) -> None:
     my = tex[:, 1].reshape(rows.shape).astype(np.float32)
     expected = cv2.remap(flight.texture, mx, my, cv2.INTER_LINEAR)[..., ::-1].astype(np.float32)
     inner = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
-    diff = np.abs(rgb - expected)[inner].mean()
     assert inner.mean() > 0.3
-    assert diff < 10.0, f"mean colour difference {diff:.1f} levels: mosaic misplaced or blurred"
+    return float(np.abs(rgb - expected)[inner].mean())
+
+
+@pytest.fixture(scope="module")
+def native(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticFlight, dict, dict, JobWorkspace]:
+    """One GPS flight composed twice from half-size working copies: at their resolution and the photos'."""
+    root = tmp_path_factory.mktemp("native")
+    flight = make_flight(root / "frames", n_frames=6, rotation_deg=10, scale_jitter=0.05, gps=True, seed=4)
+    half = {"working_max_px": max(flight.frame_size) // 2}
+    working = process_directory(root / "frames", root / "working", half)
+    native = process_directory(root / "frames", root / "native", {**half, "output_resolution": "native"})
+    return flight, working, native, JobWorkspace(root / "native")
+
+
+def test_native_output_has_the_photos_resolution(native) -> None:
+    flight, working, report, ws = native
+    assert report["mosaic"]["resolution"] == "native" and working["mosaic"]["resolution"] == "working"
+    assert report["mosaic"]["photo_px_per_px"] == pytest.approx(1.0, rel=1e-3)
+    assert working["mosaic"]["photo_px_per_px"] == pytest.approx(2.0, rel=1e-3)
+    assert report["gsd_m"] == pytest.approx(working["gsd_m"] / 2, rel=1e-3)
+    assert report["gsd_original_m"] == pytest.approx(working["gsd_original_m"], rel=1e-3)
+    for side in ("width", "height"):
+        assert abs(report["mosaic"][side] - 2 * working["mosaic"][side]) <= 1
+    with rasterio.open(ws.mosaic_path()) as src:
+        assert (src.width, src.height) == (report["mosaic"]["width"], report["mosaic"]["height"])
+        assert src.res[0] == pytest.approx(report["gsd_m"], rel=1e-6)
+    assert not (ws.root / "native").exists()  # the full decodes are scratch
+
+
+def test_native_output_holds_detail_the_working_copies_lost(native) -> None:
+    """Placed as exactly, and closer to the ground texture than the working-resolution mosaic is: the
+    photos' own pixels, not the working copies' upsampled."""
+    flight, working, _, ws = native
+    fine = ground_colour_error(flight, ws.mosaic_path())
+    coarse = ground_colour_error(flight, ws.root.parent / "working" / "mosaic.tif")
+    assert fine < 10.0 and fine < 0.8 * coarse, (fine, coarse)
 
 
 def test_report_lists_what_a_user_needs(nadir) -> None:

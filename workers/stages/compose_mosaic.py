@@ -3,18 +3,21 @@ time (:mod:`workers.algorithms.mosaic.compose`)."""
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
+import cv2
 import numpy as np
 from rasterio.windows import Window
 
 from workers.algorithms.mosaic import compose_block, gains_and_coverage, output_box
 from workers.config import MosaicConfig
-from workers.parallel import thread_count
+from workers.parallel import ordered_map, thread_count
+from workers.pipeline import PipelineError
 from workers.raster_io import open_block_writer, translate_to_cog
-from workers.records import Coverage
+from workers.records import Coverage, Frame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -28,9 +31,18 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     sizes = {k: (frames[k].width, frames[k].height) for k in to_frame}
     boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
     progress(0.0, "gain compensation")
-    image_of = partial(ws.load_compose_image, mmap=True)
-    gains, outline, area = gains_and_coverage(image_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation)
+    # gains and the outline from a 768 px render: the working copies are plenty for it, at any output scale
+    working_of = partial(ws.load_compose_image, mmap=True)
+    gains, outline, area = gains_and_coverage(working_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation)
     ws.save_coverage(Coverage(outline, area))
+    image_of = working_of
+    if cfg.output_resolution == "native":
+        progress(0.05, "decoding the photos at full size")
+        _decode_photos(ws, [frames[k] for k in sorted(to_frame)], cfg.threads)
+        to_frame = {k: _working_to_photo(frames[k]) @ M for k, M in to_frame.items()}
+        sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
+        boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
+        image_of = partial(ws.load_native_image, mmap=True)
     blocks = [(x, y) for y in range(0, geo.height, cfg.block_px) for x in range(0, geo.width, cfg.block_px)]
     tmp = ws.mosaic_scratch_path()
     transform = geo.transform if geo.georeferenced else None
@@ -45,19 +57,50 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         ThreadPoolExecutor(max_workers=threads) as pool,
     ):
         # Windows are composed on every core (OpenCV and NumPy release the GIL) and written in order by
-        # this thread, a batch at a time, so memory holds a batch of windows, never the whole mosaic.
-        for start in range(0, len(windows), threads):
-            progress(0.1 + 0.75 * start / len(windows), f"block {start + 1}/{len(windows)}")
-            batch = windows[start : start + threads]
-            for (x, y, w, h), (rgb, mask) in zip(batch, pool.map(one, batch), strict=True):
-                write(Window(x, y, w, h), rgb, mask)
+        # this thread while the next ones are composed; at most 2 per thread wait, so memory holds a few
+        # windows, never the whole mosaic.
+        pending: deque[tuple[tuple[int, int, int, int], Future[tuple[np.ndarray, np.ndarray]]]] = deque()
+        written = 0
+
+        def write_oldest(keep: int) -> None:
+            nonlocal written
+            while len(pending) > keep:
+                (x, y, w, h), future = pending.popleft()
+                write(Window(x, y, w, h), *future.result())
+                written += 1
+                progress(0.1 + 0.75 * written / len(windows), f"block {written}/{len(windows)}")
+
+        for window in windows:
+            pending.append((window, pool.submit(one, window)))
+            write_oldest(2 * threads)
+        write_oldest(0)
     progress(0.85, "writing COG with overviews")
     translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression)
     tmp.unlink(missing_ok=True)
+    ws.remove_native_images()
     progress(1.0, f"block {len(blocks)}/{len(blocks)}")
     return {
         "width": geo.width,
         "height": geo.height,
         "blocks": len(blocks),
+        "output_resolution": cfg.output_resolution,
         "gains": {frames[k].name: g for k, g in gains.items()},
     }
+
+
+def _working_to_photo(frame: Frame) -> np.ndarray:
+    """(3, 3) working-copy px -> photo px; pixel centres at integers on both, ``(x + 0.5) / s - 0.5``."""
+    sx, sy = frame.width / frame.orig_width, frame.height / frame.orig_height
+    return np.array([[1 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _decode_photos(ws: JobWorkspace, used: list[Frame], threads: int) -> None:
+    """Each used photo decoded once, whole, into the workspace's scratch (``native/``), for windows to map."""
+
+    def one(frame: Frame) -> None:
+        image = cv2.imread(frame.path, cv2.IMREAD_COLOR)  # as load_images read it (EXIF orientation applied)
+        if image is None or image.shape[:2] != (frame.orig_height, frame.orig_width):
+            raise PipelineError(f"{frame.name} could not be decoded again at its full size")
+        ws.save_native_image(frame.index, image)
+
+    ordered_map(one, used, thread_count(threads), noop_progress, "photo")

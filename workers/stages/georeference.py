@@ -7,7 +7,14 @@ from typing import Any
 import numpy as np
 
 from workers.algorithms.geometry import FLIP_Y, fit_similarity, lonlat_to_utm, similarity_scale, utm_epsg
-from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, apply_homography, frame_corners, map_grid, pixel_grid
+from workers.algorithms.mosaic import (
+    MAX_OUTPUT_PIXELS,
+    apply_homography,
+    frame_corners,
+    map_grid,
+    pixel_grid,
+    refine_grid,
+)
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
 from workers.records import Frame, Georef
@@ -25,12 +32,25 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         [apply_homography(H, frame_corners(frames[k].width, frames[k].height)) for k, H in homs.items()]
     )
     fit, reason = _fit_gps(frames, homs, cfg.min_gps_frames)
+    grid = map_grid(corners, fit["plane_to_map"]) if fit is not None else pixel_grid(corners)
+    # native: the grid as fine as the photos are, i.e. their working copies' scale undone (the median over
+    # the frames, should a flight mix photo sizes)
+    factor = float(np.median([1.0 / frames[k].scale for k in homs])) if cfg.output_resolution == "native" else 1.0
+    if factor != 1.0:
+        grid = refine_grid(grid, factor)
     if fit is not None:
-        grid = map_grid(corners, fit["plane_to_map"])
-        result = Georef(georeferenced=True, reason="", **{**fit, **grid})
+        fit["gsd_m"] /= factor
+        result = Georef(georeferenced=True, reason="", output_scale=factor, **{**fit, **grid})
     else:
-        grid = pixel_grid(corners)
-        result = Georef(georeferenced=False, reason=reason, epsg=None, plane_to_map=np.eye(3), gsd_m=None, **grid)
+        result = Georef(
+            georeferenced=False,
+            reason=reason,
+            epsg=None,
+            plane_to_map=np.eye(3),
+            gsd_m=None,
+            output_scale=factor,
+            **grid,
+        )
     if result.width * result.height > MAX_OUTPUT_PIXELS:
         raise PipelineError(
             f"the mosaic would be {result.width}x{result.height} px; the alignment "
@@ -45,6 +65,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "gsd_m": result.gsd_m,
         "width": result.width,
         "height": result.height,
+        "output_resolution": cfg.output_resolution,
+        "output_scale": result.output_scale,
     }
 
 

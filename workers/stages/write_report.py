@@ -45,7 +45,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "georeference_note": geo.reason,
         "crs": f"EPSG:{geo.epsg}" if geo.georeferenced else None,
         "gsd_m": geo.gsd_m,  # the mosaic's pixel size
-        "gsd_original_m": geo.gsd_m * ref.scale if geo.gsd_m else None,  # the photos' own
+        "gsd_original_m": geo.gsd_m * geo.output_scale * ref.scale if geo.gsd_m else None,  # the photos' own
         "gps_residual_rms_m": geo.gps_residual_rms_m,
         "mosaic": {
             "width": geo.width,
@@ -53,6 +53,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             "transform": geo.transform,
             "footprint": _polygon(outline, geo),
             "coverage_fraction": coverage.area_fraction,
+            # "working" or "native", and how many of the reference photo's px one mosaic px spans
+            "resolution": cfg.output_resolution if cfg.mode == "planar" else "working",
+            "photo_px_per_px": 1.0 / (geo.output_scale * ref.scale),
         },
         "stage_seconds": _stage_seconds(ws, pipeline_key("mosaic", {"mode": cfg.mode})),
     }

@@ -75,6 +75,9 @@ from .grid import (
 from .grid import (
     pixel_grid as pixel_grid,
 )
+from .grid import (
+    refine_grid as refine_grid,
+)
 from .homography import (
     estimate_fundamental as estimate_fundamental,
 )

@@ -20,8 +20,16 @@ def warp_maps(H_out_to_frame: np.ndarray, x0: int, y0: int, width: int, height: 
     map_x, map_y : (height, width) float32 frame pixel coordinates of each output pixel centre,
         ready for ``cv2.remap``.
     """
-    xs = np.arange(x0, x0 + width, dtype=np.float64) + 0.5
-    ys = np.arange(y0, y0 + height, dtype=np.float64) + 0.5
+    return warp_maps_strided(H_out_to_frame, x0, y0, width, height, 1)
+
+
+def warp_maps_strided(
+    H_out_to_frame: np.ndarray, x0: int, y0: int, width: int, height: int, step: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`warp_maps` at every ``step``-th output pixel centre: (height, width) float32 maps whose
+    element (j, i) is output pixel (x0 + i step, y0 + j step)."""
+    xs = x0 + np.arange(width, dtype=np.float64) * step + 0.5
+    ys = y0 + np.arange(height, dtype=np.float64) * step + 0.5
     H = H_out_to_frame
     den = H[2, 0] * xs[None, :] + H[2, 1] * ys[:, None] + H[2, 2]
     mx = (H[0, 0] * xs[None, :] + H[0, 1] * ys[:, None] + H[0, 2]) / den

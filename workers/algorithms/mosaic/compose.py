@@ -12,7 +12,13 @@ import cv2
 import numpy as np
 
 from workers.algorithms.mosaic.alignment import apply_homography, frame_corners
-from workers.algorithms.mosaic.blending import feather_weights, gain_compensation, overlap_statistics, warp_maps
+from workers.algorithms.mosaic.blending import (
+    feather_weights,
+    gain_compensation,
+    overlap_statistics,
+    warp_maps,
+    warp_maps_strided,
+)
 
 OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains and the footprint
 
@@ -41,7 +47,10 @@ def compose_block(
     the window needs are read). Returns (h, w, 3) uint8 RGB and (h, w) bool coverage.
 
     Each frame is warped only over the part of the window its box covers, by ``cv2.warpPerspective``
-    (the same bilinear sampling as ``cv2.remap`` on :func:`warp_maps`, without building the maps).
+    (the same bilinear sampling as ``cv2.remap`` on :func:`warp_maps`, without building the maps), and its
+    feathering weight comes from :func:`_feather_window`. The products, sums and the final division are
+    OpenCV's SIMD array operations: NumPy's broadcasting of a (h, w) weight over 3 channels cost as much
+    as the warps (measured on the Brighton strip: 1.4 s -> 0.9 s of CPU for its 16 windows).
     """
     x, y, w, h = window
     acc = np.zeros((h, w, 3), np.float32)
@@ -51,23 +60,49 @@ def compose_block(
         if sx1 <= sx0 or sy1 <= sy0:
             continue
         sub = (sx0, sy0, sx1 - sx0, sy1 - sy0)
-        weight = feather_weights(*warp_maps(to_frame[k], *sub), *sizes[k], feather_px)
-        if not weight.any():
+        weight = _feather_window(to_frame[k], sub, *sizes[k], feather_px)
+        if not cv2.countNonZero(weight):
             continue
         pixels = _warp(image_of(k), to_frame[k], sub)
-        pixels *= gains[k].astype(np.float32)[None, None, :]
-        pixels *= weight[..., None]
+        g = gains[k].astype(np.float32)
+        weighted = cv2.multiply(pixels, cv2.merge([weight * g[0], weight * g[1], weight * g[2]]), dtype=cv2.CV_32F)
         rows, cols = slice(sy0 - y, sy1 - y), slice(sx0 - x, sx1 - x)
-        acc[rows, cols] += pixels
-        wsum[rows, cols] += weight
+        acc_view, wsum_view = acc[rows, cols], wsum[rows, cols]
+        cv2.add(acc_view, weighted, dst=acc_view)
+        cv2.add(wsum_view, weight, dst=wsum_view)
     mask = wsum > 0
-    bgr = np.clip(acc / np.maximum(wsum, 1e-6)[..., None] + 0.5, 0, 255).astype(np.uint8)
-    bgr[~mask] = 0
+    inverse = cv2.divide(1.0, np.maximum(wsum, np.float32(1e-6)))
+    # where no frame reaches, acc is 0 and so is the pixel; convertScaleAbs rounds and saturates to uint8
+    bgr = cv2.convertScaleAbs(cv2.multiply(acc, cv2.merge([inverse, inverse, inverse])))
     return bgr[..., ::-1], mask
 
 
+FEATHER_STEP_PX = 8  # _feather_window: the edge distance is evaluated every this many output px
+
+
+def _feather_window(
+    to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int, ramp_px: float
+) -> np.ndarray:
+    """(h, w) float32 feathering weight of a ``width`` x ``height`` frame over an output ``window``:
+    :func:`feather_weights` of :func:`warp_maps`, with the maps computed every ``FEATHER_STEP_PX`` output px
+    and interpolated bilinearly in between.
+
+    A homography's maps are smooth (exactly linear for an affine map), so the interpolation moves them by
+    a small fraction of a px over a few px of perspective curvature; the weight is then found from them at
+    full resolution, so the creases of the distance to the frame's edge stay sharp. Building the
+    full-resolution maps in float64 cost a third of composing.
+    """
+    x, y, w, h = window
+    step = FEATHER_STEP_PX
+    coarse = cv2.merge(warp_maps_strided(to_frame, x, y, w // step + 2, h // step + 2, step))
+    # fine pixel (i, j) sits at coarse position (i / step, j / step)
+    zoom = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
+    fine = cv2.warpAffine(coarse, zoom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    return feather_weights(fine[..., 0], fine[..., 1], width, height, ramp_px)
+
+
 def _warp(image: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
-    """(h, w, 3) float32 bilinear samples of ``image`` over an output ``window``, reading only the frame
+    """(h, w, 3) uint8 bilinear samples of ``image`` over an output ``window``, reading only the frame
     rows and columns the window maps onto."""
     x, y, w, h = window
     corners = np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]], np.float64)
@@ -81,8 +116,7 @@ def _warp(image: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, 
     shift_crop = np.array([[1.0, 0.0, -c0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]])
     M = shift_crop @ to_frame @ shift_out
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    out = cv2.warpPerspective(crop, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-    return out.astype(np.float32)
+    return cv2.warpPerspective(crop, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _sample(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -45,3 +45,21 @@ def pixel_grid(plane_corners: np.ndarray) -> dict[str, Any]:
         "transform": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
         "output_to_plane": shift,
     }
+
+
+def refine_grid(grid: dict[str, Any], factor: float) -> dict[str, Any]:
+    """A :func:`map_grid` or :func:`pixel_grid` with ``factor`` times as many px along each axis over the same
+    ground (``factor`` 1.95: a mosaic at the photos' own resolution instead of the working copies').
+
+    The grid keeps its origin (top left corner); the pixel size shrinks by ``factor``.
+    """
+    if factor <= 0:
+        raise ValueError("factor must be positive")
+    a, b, c, d, e, f = grid["transform"]
+    zoom = np.diag([1.0 / factor, 1.0 / factor, 1.0])
+    return {
+        "width": math.ceil(grid["width"] * factor - 1e-9),
+        "height": math.ceil(grid["height"] * factor - 1e-9),
+        "transform": [a / factor, b / factor, c, d / factor, e / factor, f],
+        "output_to_plane": np.asarray(grid["output_to_plane"]) @ zoom,
+    }
