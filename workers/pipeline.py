@@ -7,8 +7,10 @@ OpenCV or the stage code.
 from __future__ import annotations
 
 import importlib
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -141,13 +143,16 @@ def process_directory(
     from workers.image_meta import InvalidImageError, inspect_image
 
     paths = sorted(p for p in Path(src_dir).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png", ".tif", ".tiff"})
-    frames = []
-    for path in paths:
+
+    def inspect(path: Path) -> dict[str, Any]:
         try:
-            meta = inspect_image(path)
+            return {"name": path.name, "path": str(path.resolve()), **inspect_image(path)}
         except InvalidImageError as exc:
             raise PipelineError(f"{path.name}: {exc}") from None
-        frames.append({"name": path.name, "path": str(path.resolve()), **meta})
+
+    # a thread per core: Pillow releases the GIL while it decodes
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        frames = list(pool.map(inspect, paths))
     if len(frames) < 2:
         raise PipelineError(f"{src_dir} holds {len(frames)} usable image(s); a mosaic needs at least 2")
     ws = JobWorkspace(out_dir)

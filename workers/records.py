@@ -39,6 +39,7 @@ class Frame:
     pitch: float | None = None
     roll: float | None = None
     relative_altitude: float | None = None
+    gps_accuracy_m: float | None = None  # of ``gps``, from a GPS side file; None: the job's gps_sigma_m
 
     def to_json(self) -> JsonDict:
         return dataclasses.asdict(self)

@@ -6,9 +6,12 @@ from typing import Any
 
 import numpy as np
 
+from workers.algorithms.geometry import similarity_scale
 from workers.algorithms.mosaic import (
     TiePoints,
+    apply_homography,
     chain_homographies,
+    fit_plane_to_map,
     is_plausible,
     refine_homographies,
     spanning_tree,
@@ -83,18 +86,53 @@ def _adjust(
     initial = chain_homographies(root, parent, {p.pair: p.model for p in pairs if p.model is not None})
     ties = {p.pair: TiePoints(*ws.load_matches(p.pair)) for p in pairs if p.i in initial and p.j in initial}
     sizes = {k: (frames[k].width, frames[k].height) for k in initial}
-    return (
-        root,
-        refine_homographies(
-            initial,
+
+    def adjust(start: dict[int, np.ndarray], positions: dict[int, tuple[np.ndarray, float]]) -> dict[int, np.ndarray]:
+        return refine_homographies(
+            start,
             ties,
             root,
             sizes,
             loss_scale_px=cfg.ransac_threshold_px,
             perspective_damping=cfg.perspective_damping,
-        ),
-        ties,
-    )
+            positions=positions,
+        )
+
+    refined = adjust(initial, {})
+    # With GPS, the fixes join the adjustment: their similarity to the plane is fitted to the tie-point
+    # solution, then every frame is pulled towards its fix by the fix's accuracy, and again with the
+    # similarity refitted to that. Each round starts from the chained homographies, not the last
+    # solution: the perspective damping holds to where it starts, and restarting from a bent solution
+    # would let the bend grow (doubled on a 16-frame test strip).
+    for _ in range(GPS_ROUNDS):
+        positions = gps_positions(frames, refined, cfg.gps_sigma_m, cfg.min_gps_frames)
+        if not positions:
+            break
+        refined = adjust(initial, positions)
+    return root, refined, ties
+
+
+GPS_ROUNDS = 2  # adjustments with GPS inside, each after refitting the GPS similarity to the plane
+
+
+def gps_positions(
+    frames: dict[int, Frame], homs: dict[int, np.ndarray], sigma_m: float, min_frames: int
+) -> dict[int, tuple[np.ndarray, float]]:
+    """Frame -> (where its GPS fix puts its centre in the plane, px; that fix's accuracy, px) through the
+    similarity that best fits the fixes to ``homs``; empty with fewer than ``min_frames`` fixes or too
+    little spread between them to fit a similarity (then the adjustment is by tie points alone)."""
+    with_gps = [k for k in sorted(homs) if frames[k].gps]
+    if len(with_gps) < min_frames:
+        return {}
+    latlon = np.array([[gps["lat"], gps["lon"]] for k in with_gps if (gps := frames[k].gps)])
+    centres = np.concatenate([apply_homography(homs[k], _centre(frames[k])) for k in with_gps])
+    fit = fit_plane_to_map(centres, latlon)
+    if isinstance(fit, str):
+        return {}
+    _, plane_to_map, utm = fit
+    gsd = similarity_scale(plane_to_map)
+    targets = apply_homography(np.linalg.inv(plane_to_map), utm)
+    return {k: (targets[n], (frames[k].gps_accuracy_m or sigma_m) / gsd) for n, k in enumerate(with_gps)}
 
 
 def _inconsistent_pairs(
@@ -152,3 +190,8 @@ def _rejections(
         elif not is_plausible(refined[k], *sizes[k]):
             out.append(RejectedFrame(k, f.name, "alignment folds or stretches the frame"))
     return out
+
+
+def _centre(frame: Frame) -> np.ndarray:
+    """(1, 2) pixel (x, y) of the working copy's centre (pixel centres at integers)."""
+    return np.array([[(frame.width - 1) / 2, (frame.height - 1) / 2]])

@@ -6,10 +6,11 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.geometry import FLIP_Y, fit_similarity, lonlat_to_utm, similarity_scale, utm_epsg
+from workers.algorithms.geometry import similarity_scale
 from workers.algorithms.mosaic import (
     MAX_OUTPUT_PIXELS,
     apply_homography,
+    fit_plane_to_map,
     frame_corners,
     map_grid,
     pixel_grid,
@@ -19,8 +20,6 @@ from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
 from workers.records import Frame, Georef
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
-
-MIN_GPS_SPREAD_M = 3.0  # below this, consumer GPS noise would dominate the fitted scale and rotation
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
@@ -76,16 +75,13 @@ def _fit_gps(
     with_gps = [k for k in homs if frames[k].gps]
     if len(with_gps) < min_frames:
         return None, f"{len(with_gps)} aligned frame(s) have GPS; georeferencing needs {min_frames}"
-    lonlat = np.array([[gps["lon"], gps["lat"]] for k in with_gps if (gps := frames[k].gps)])
-    epsg = utm_epsg(float(lonlat[:, 1].mean()), float(lonlat[:, 0].mean()))
-    utm = lonlat_to_utm(lonlat, epsg)
-    spread = float(np.linalg.norm(utm - utm.mean(axis=0), axis=1).max())
-    if spread < MIN_GPS_SPREAD_M:
-        return None, f"the GPS positions lie within {spread:.1f} m of each other; too close to fit a scale"
+    latlon = np.array([[gps["lat"], gps["lon"]] for k in with_gps if (gps := frames[k].gps)])
     centre = {k: np.array([(frames[k].width - 1) / 2, (frames[k].height - 1) / 2]) for k in with_gps}
     centres = np.array([apply_homography(homs[k], centre[k])[0] for k in with_gps])
-    S = fit_similarity(apply_homography(FLIP_Y, centres), utm)
-    M = S @ FLIP_Y
+    fit = fit_plane_to_map(centres, latlon)
+    if isinstance(fit, str):
+        return None, fit
+    epsg, M, utm = fit
     residuals = np.linalg.norm(apply_homography(M, centres) - utm, axis=1)
     return {
         "epsg": epsg,

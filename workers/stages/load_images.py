@@ -13,7 +13,17 @@ from workers.pipeline import PipelineError
 from workers.records import Frame, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
-EXIF_FIELDS = ("gps", "focal_length_mm", "focal_length_35mm", "yaw", "pitch", "roll", "relative_altitude")
+# what an input carries besides its pixels: EXIF's, or a GPS side file's (the api puts it in inputs.json)
+EXIF_FIELDS = (
+    "gps",
+    "focal_length_mm",
+    "focal_length_35mm",
+    "yaw",
+    "pitch",
+    "roll",
+    "relative_altitude",
+    "gps_accuracy_m",
+)
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:

@@ -70,6 +70,12 @@ from .grid import (
     MAX_OUTPUT_PIXELS as MAX_OUTPUT_PIXELS,
 )
 from .grid import (
+    MIN_GPS_SPREAD_M as MIN_GPS_SPREAD_M,
+)
+from .grid import (
+    fit_plane_to_map as fit_plane_to_map,
+)
+from .grid import (
     map_grid as map_grid,
 )
 from .grid import (

@@ -4,7 +4,7 @@ bundle adjustment used by Brown & Lowe 2007 and OpenCV's ``detail::BundleAdjuste
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,6 +91,7 @@ def refine_homographies(
     frame_sizes: dict[int, tuple[int, int]],
     loss_scale_px: float = 2.0,
     perspective_damping: float = 1000.0,
+    positions: dict[int, tuple[np.ndarray, float]] | None = None,
 ) -> dict[int, np.ndarray]:
     """Adjust all frame->plane homographies jointly so that every tie point pair meets in the plane.
 
@@ -107,11 +108,17 @@ def refine_homographies(
     frame's perspective correction to the spanning-tree estimate (measured directly between overlapping
     frames): a correction of 1/damping in normalised units costs as much as a 1 px tie residual.
 
+    ``positions`` holds what GPS says about a frame: where its centre lies in the plane and how sure that
+    is, ``(xy (2,) plane px, sigma px)``. Each is one more observation, its miss divided by sigma, so a
+    long strip cannot bend further than its GPS allows (tie points alone constrain a chain's shape only
+    locally). The root frame is fixed: its position only matters through the plane's placement.
+
     Parameters
     ----------
     initial : frame -> (3, 3) homography from frame pixels to the plane.
     ties : (i, j) -> tie points between frames i and j, both in ``initial``.
     frame_sizes : frame -> (width, height) px.
+    positions : frame -> (plane px of its centre, sigma px), for the frames with GPS.
 
     Returns
     -------
@@ -129,8 +136,17 @@ def refine_homographies(
         for (i, j), t in ties.items()
         if i in initial and j in initial and len(t.points_i)
     ]
+    # GPS observations, as one-sided "tie points" of the frame's centre against a fixed plane position
+    centres = {
+        k: _normalised_points(norms[k], np.array([[(w - 1) / 2, (h - 1) / 2]])) for k, (w, h) in frame_sizes.items()
+    }
+    anchored = [
+        (k, centres[k], np.asarray(xy, np.float64), 1.0 / sigma)
+        for k, (xy, sigma) in sorted((positions or {}).items())
+        if k in slot
+    ]
     perspective = np.array([8 * s + o for s in range(len(free)) for o in (6, 7)])
-    rows, cols = _jacobian_structure(obs, slot, len(perspective), perspective)
+    rows, cols = _jacobian_structure(obs, slot, len(perspective), perspective, [k for k, *_ in anchored])
     shape = (rows.max() + 1, 8 * len(free))
 
     def correction(params: np.ndarray, k: int) -> np.ndarray:
@@ -143,7 +159,8 @@ def refine_homographies(
             _project(lift[i], correction(params, i), qi)[0] - _project(lift[j], correction(params, j), qj)[0]
             for i, j, qi, qj in obs
         ]
-        return np.concatenate([np.concatenate(parts).ravel(), perspective_damping * params[perspective]])
+        gps = [weight * (_project(lift[k], correction(params, k), q)[0][0] - xy) for k, q, xy, weight in anchored]
+        return np.concatenate([np.concatenate(parts).ravel(), *gps, perspective_damping * params[perspective]])
 
     def jacobian(params: np.ndarray) -> csr_matrix:
         data = []
@@ -151,6 +168,8 @@ def refine_homographies(
             for k, q, sign in ((i, qi, 1.0), (j, qj, -1.0)):
                 if k in slot:
                     data.append(sign * _projection_derivative(lift[k], correction(params, k), q).ravel())
+        for k, q, _, weight in anchored:
+            data.append(weight * _projection_derivative(lift[k], correction(params, k), q).ravel())
         data.append(np.full(len(perspective), perspective_damping))
         return csr_matrix((np.concatenate(data), (rows, cols)), shape=shape)
 
@@ -227,9 +246,14 @@ def _projection_derivative(A: np.ndarray, C: np.ndarray, q: np.ndarray) -> np.nd
 
 
 def _jacobian_structure(
-    obs: list[tuple[int, int, np.ndarray, np.ndarray]], slot: dict[int, int], n_damped: int, damped: np.ndarray
+    obs: list[tuple[int, int, np.ndarray, np.ndarray]],
+    slot: dict[int, int],
+    n_damped: int,
+    damped: np.ndarray,
+    anchored: Sequence[int] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column of every non-zero of the Jacobian, in the order ``jacobian`` lists their values."""
+    """Row and column of every non-zero of the Jacobian, in the order ``jacobian`` lists their values: tie
+    points, then the ``anchored`` frames' positions (2 rows each), then the damped parameters."""
     rows, cols = [], []
     r = 0
     block = np.arange(8)
@@ -241,6 +265,10 @@ def _jacobian_structure(
                 rows.append(np.broadcast_to(point_rows, (n, 2, 8)).ravel())
                 cols.append(np.broadcast_to(8 * slot[k] + block, (n, 2, 8)).ravel())
         r += 2 * n
+    for k in anchored:
+        rows.append(np.repeat(r + np.arange(2), 8))
+        cols.append(np.tile(8 * slot[k] + block, 2))
+        r += 2
     rows.append(r + np.arange(n_damped))
     cols.append(damped)
     return np.concatenate(rows), np.concatenate(cols)

@@ -7,10 +7,27 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.geometry import similarity_scale
+from workers.algorithms.geometry import FLIP_Y, fit_similarity, lonlat_to_utm, similarity_scale, utm_epsg
 from workers.algorithms.mosaic.alignment import apply_homography
 
 MAX_OUTPUT_PIXELS = 4_000_000_000  # a larger grid means a broken alignment, not a real flight
+MIN_GPS_SPREAD_M = 3.0  # below this, consumer GPS noise would dominate the fitted scale and rotation
+
+
+def fit_plane_to_map(centres: np.ndarray, latlon: np.ndarray) -> tuple[int, np.ndarray, np.ndarray] | str:
+    """The similarity from the mosaic plane (px, y down) to UTM metres that best puts frame centres on their
+    GPS fixes.
+
+    ``centres`` (N, 2) plane px, ``latlon`` (N, 2) degrees. Returns ``(epsg, plane_to_map (3, 3), utm (N, 2))``,
+    or why it cannot be fitted (a sentence).
+    """
+    epsg = utm_epsg(float(latlon[:, 0].mean()), float(latlon[:, 1].mean()))
+    utm = lonlat_to_utm(latlon[:, ::-1], epsg)
+    spread = float(np.linalg.norm(utm - utm.mean(axis=0), axis=1).max())
+    if spread < MIN_GPS_SPREAD_M:
+        return f"the GPS positions lie within {spread:.1f} m of each other; too close to fit a scale"
+    S = fit_similarity(apply_homography(FLIP_Y, centres), utm)
+    return epsg, S @ FLIP_Y, utm
 
 
 def map_grid(plane_corners: np.ndarray, plane_to_map: np.ndarray) -> dict[str, Any]:
