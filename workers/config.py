@@ -77,11 +77,12 @@ class MosaicConfig(BaseModel):
     # the pixels and the time of composing; the alignment is the same)
     output_resolution: Literal["working", "native"] = "working"
     min_gps_frames: int = Field(3, ge=2, le=10000)  # georeference only with at least this many GPS fixes
+    # accuracy of the frames' GPS positions, m; both modes' adjustments weigh the fixes by it
+    gps_sigma_m: float = Field(5.0, gt=0.0, le=1000.0)
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
     # intrinsics the adjustment refines
     self_calibrate: list[Literal["focal", "k1", "k2"]] = Field(["focal", "k1", "k2"], max_length=3)
-    gps_sigma_m: float = Field(5.0, gt=0.0, le=1000.0)  # accuracy of the frames' GPS positions, m
     gcp_sigma_m: float = Field(0.02, gt=0.0, le=100.0)  # accuracy of the ground control points, m
     # GCP names held out of the adjustment and reported as check points
     checkpoints: list[Name] = Field([], max_length=MAX_CHECKPOINTS)

@@ -49,6 +49,7 @@ def open_block_writer(
         "blockxsize": COG_BLOCK_PX,
         "blockysize": COG_BLOCK_PX,
         "photometric": "RGB",
+        "interleave": "band",  # a scratch file: the COG is pixel-interleaved
         "BIGTIFF": "IF_SAFER",
         "num_threads": "ALL_CPUS",
     }
@@ -61,8 +62,10 @@ def open_block_writer(
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
 
         def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
-            dst.write(np.moveaxis(rgb, 2, 0), window=window)
-            dst.write_mask(np.where(mask, 255, 0).astype(np.uint8), window=window)
+            # band by band from contiguous planes: rasterio copies a strided view slowly, and GDAL
+            # interleaves pixels when the COG is made, on every core (half the time of this thread's writes)
+            dst.write(np.ascontiguousarray(np.moveaxis(rgb, 2, 0)), window=window)
+            dst.write_mask(mask.astype(np.uint8) * np.uint8(255), window=window)
 
         yield write
 
