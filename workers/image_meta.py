@@ -1,11 +1,13 @@
 """Validate an uploaded photo and read what photogrammetry needs from it (EXIF GPS, focal length,
-DJI XMP attitude). Pillow only: the API uses this without loading OpenCV.
+DJI XMP attitude). Pillow (and GDAL for TIFF): the API uses this without loading OpenCV.
 
 Every byte of the image data is decoded, so a truncated or corrupt file is refused, but never into a
 full-size raster: a few-hundred-KiB PNG may declare 240 MP (720 MB decoded). A JPEG is decoded at 1/8 scale
 (libjpeg's DCT scaling, Pillow's ``draft``: every coefficient is still read); a PNG's zlib stream is inflated
-in bounded pieces and checked (chunk CRCs, filter bytes, exactly the data its header declares); other
-formats (TIFF) are decoded in full, within a process-wide memory budget shared by concurrent validations.
+in bounded pieces and checked (chunk CRCs, filter bytes, exactly the data its header declares); a TIFF
+(striped or tiled, JPEG or otherwise compressed, BigTIFF) is decoded one tile or strip at a time by GDAL
+(rasterio, imported only then); other formats in full, within a process-wide memory budget shared by
+concurrent validations.
 """
 
 from __future__ import annotations
@@ -85,6 +87,8 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
                 f"image declares more than {Image.MAX_IMAGE_PIXELS} px (a decompression bomb?)", too_large=True
             ) from None
         except UnidentifiedImageError:
+            if _is_tiff(path):  # a TIFF Pillow has no mode for (16-bit RGB, say): GDAL's header and blocks
+                return _inspect_tiff(path, limits)
             raise InvalidImageError("not a readable image (JPEG, PNG or TIFF expected)") from None
         except (OSError, SyntaxError, ValueError) as exc:
             raise InvalidImageError(f"image data is corrupt or truncated ({exc})") from None
@@ -132,10 +136,51 @@ def _decode(img: Image.Image, path: Path, budget: DecodeBudget) -> None:
         with path.open("rb") as f:
             check_png_data(f, width, height)
             _read_png_trailer(f, img.info)
+    elif img.format == "TIFF":
+        _decode_tiff_blocks(path)
     else:
         bands = len(img.getbands())
         with budget.hold(width * height * bands * _BYTES_PER_BAND.get(img.mode, 4)):
             img.load()
+
+
+TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
+
+
+def _is_tiff(path: Path) -> bool:
+    with path.open("rb") as f:
+        return f.read(4) in TIFF_MAGIC
+
+
+def _inspect_tiff(path: Path, limits: ImageLimits) -> dict[str, Any]:
+    """Size and a block-by-block decode of a TIFF through GDAL alone (no EXIF: Pillow could not open it)."""
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    try:
+        with rasterio.open(path) as src:
+            width, height = src.width, src.height
+    except RasterioError as exc:
+        raise InvalidImageError(f"not a readable TIFF ({exc})") from None
+    _check_dimensions(width, height, limits)
+    _decode_tiff_blocks(path)
+    return {"width": width, "height": height, "format": "TIFF"}
+
+
+def _decode_tiff_blocks(path: Path) -> None:
+    """Decode every tile or strip of a TIFF once, one block at a time (GDAL): a 135 MP JPEG-in-TIFF aerial
+    frame is checked in a few MiB instead of its 405 MB raster."""
+    import rasterio  # GDAL: only for TIFF uploads
+    from rasterio.errors import RasterioError
+
+    try:
+        with rasterio.open(path) as src:
+            if src.dtypes[0] not in ("uint8", "uint16"):
+                raise InvalidImageError(f"{src.dtypes[0]} samples: 8- or 16-bit unsigned integers expected")
+            for _, window in src.block_windows(1):
+                src.read(window=window)
+    except RasterioError as exc:
+        raise InvalidImageError(f"image data is corrupt or truncated ({exc})") from None
 
 
 _BYTES_PER_BAND = {"1": 1, "L": 1, "P": 1, "RGB": 1, "RGBA": 1, "CMYK": 1, "YCbCr": 1, "LA": 1, "PA": 1}

@@ -471,7 +471,8 @@ def test_a_mesh_is_parsed_in_a_worker_thread(monkeypatch: pytest.MonkeyPatch) ->
 
 
 def test_full_decodes_share_a_memory_budget(tmp_path: Path) -> None:
-    """A TIFF is decoded in full, within the process's budget: two decodes that together exceed it take turns."""
+    """A full decode (a format without a bounded reader) holds the process's budget: two decodes that together
+    exceed it take turns; a TIFF is decoded block by block and needs none of it."""
     from workers.image_meta import DecodeBudget
 
     budget, inside, most = DecodeBudget(100), [0], [0]

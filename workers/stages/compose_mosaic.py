@@ -4,6 +4,7 @@ time (:mod:`workers.algorithms.mosaic.compose`)."""
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from typing import Any
@@ -15,6 +16,7 @@ from rasterio.windows import Window
 from workers.algorithms.mosaic import compose_block, gains_and_coverage, output_box
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
+from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import open_block_writer, translate_to_cog
 from workers.records import Coverage, Frame
@@ -35,14 +37,14 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     working_of = partial(ws.load_compose_image, mmap=True)
     gains, outline, area = gains_and_coverage(working_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation)
     ws.save_coverage(Coverage(outline, area))
-    image_of = working_of
+    image_of: Callable[[int], Any] = working_of
     if cfg.output_resolution == "native":
         progress(0.05, "decoding the photos at full size")
-        _decode_photos(ws, [frames[k] for k in sorted(to_frame)], cfg.threads)
+        photos = _open_photos(ws, [frames[k] for k in sorted(to_frame)], cfg.threads)
         to_frame = {k: _working_to_photo(frames[k]) @ M for k, M in to_frame.items()}
         sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
         boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
-        image_of = partial(ws.load_native_image, mmap=True)
+        image_of = photos.__getitem__
     blocks = [(x, y) for y in range(0, geo.height, cfg.block_px) for x in range(0, geo.width, cfg.block_px)]
     tmp = ws.mosaic_scratch_path()
     transform = geo.transform if geo.georeferenced else None
@@ -94,13 +96,22 @@ def _working_to_photo(frame: Frame) -> np.ndarray:
     return np.array([[1 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _decode_photos(ws: JobWorkspace, used: list[Frame], threads: int) -> None:
-    """Each used photo decoded once, whole, into the workspace's scratch (``native/``), for windows to map."""
+def _open_photos(ws: JobWorkspace, used: list[Frame], threads: int) -> dict[int, Any]:
+    """Each used photo at full size, as something windows can be sliced from: a TIFF read by window where
+    it lies (never decoded whole), any other photo decoded once into the workspace's scratch (``native/``)
+    and memory-mapped."""
 
-    def one(frame: Frame) -> None:
+    def one(frame: Frame) -> Any:
+        if reads_by_window(frame.path):
+            reader = WindowReader(frame.path)
+            if reader.shape[:2] != (frame.orig_height, frame.orig_width):
+                raise PipelineError(f"{frame.name} changed size since it was loaded")
+            return reader
         image = cv2.imread(frame.path, cv2.IMREAD_COLOR)  # as load_images read it (EXIF orientation applied)
         if image is None or image.shape[:2] != (frame.orig_height, frame.orig_width):
             raise PipelineError(f"{frame.name} could not be decoded again at its full size")
         ws.save_native_image(frame.index, image)
+        return ws.load_native_image(frame.index, mmap=True)
 
-    ordered_map(one, used, thread_count(threads), noop_progress, "photo")
+    opened = ordered_map(one, used, thread_count(threads), noop_progress, "photo")
+    return {frame.index: photo for frame, photo in zip(used, opened, strict=True)}

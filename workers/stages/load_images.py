@@ -4,11 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-import cv2
-import numpy as np
-
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
+from workers.photo_io import read_reduced
 from workers.pipeline import PipelineError
 from workers.records import Frame, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -32,14 +30,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
 
     def one(k: int) -> Frame | RejectedFrame:
         item = inputs[k]
-        image = cv2.imread(item["path"], cv2.IMREAD_COLOR)
-        if image is None:
+        # a JPEG is decoded whole (the largest array of the stage, one per thread at a time); a TIFF is
+        # averaged down block by block, never decoded whole
+        found = read_reduced(item["path"], cfg.working_max_px)
+        if found is None:
             return RejectedFrame(k, item["name"], "could not be decoded")
-        working, scale = _downscale(image, cfg.working_max_px)
+        working, (width, height) = found
         ws.save_working_image(k, working)
         metadata = {name: item.get(name) for name in EXIF_FIELDS}
-        height, width = image.shape[:2]
-        del image  # the full decode is the largest array of the stage: one per thread at a time
+        scale = min(1.0, cfg.working_max_px / max(width, height))
         return Frame(
             k, item["name"], item["path"], width, height, working.shape[1], working.shape[0], scale, **metadata
         )
@@ -53,13 +52,3 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     ws.save_frames(frames, rejected)
     progress(1.0, f"frame {len(inputs)}/{len(inputs)}")
     return {"frames": len(frames), "rejected": len(rejected)}
-
-
-def _downscale(image: np.ndarray, max_px: int) -> tuple[np.ndarray, float]:
-    """The image shrunk (INTER_AREA, no aliasing) so its longest side is at most ``max_px``."""
-    longest = max(image.shape[:2])
-    if longest <= max_px:
-        return np.ascontiguousarray(image), 1.0
-    scale = max_px / longest
-    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), scale

@@ -1,0 +1,108 @@
+"""Reading a photo whole, reduced or by window, without decoding more of it than asked.
+
+JPEG and PNG go through OpenCV (a whole decode; EXIF orientation applied). TIFF goes through rasterio
+(GDAL), tile by tile or strip by strip: a reduced copy is averaged block by block and a window reads only
+the blocks it touches, so a 75000 x 1800 JPEG-in-TIFF aerial frame (135 MP, 405 MB decoded) is never held
+whole. Pixels come back as OpenCV does them: (H, W, 3) uint8 BGR.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rasterio
+from rasterio.enums import Resampling
+from rasterio.windows import Window
+
+TIFF_SUFFIXES = (".tif", ".tiff")
+
+
+def reads_by_window(path: str | Path) -> bool:
+    """True for formats whose windows cost only their blocks (TIFF); JPEG and PNG decode whole."""
+    return Path(path).suffix.lower() in TIFF_SUFFIXES
+
+
+def read_reduced(path: str | Path, max_px: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """The photo shrunk so its longest side is at most ``max_px`` (area average, no aliasing), and its
+    full (width, height); None when it cannot be decoded.
+
+    The reduced size is ``round(side * max_px / longest)``, the same for either reader.
+    """
+    if reads_by_window(path):
+        return _tiff_reduced(Path(path), max_px)
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        return None
+    height, width = image.shape[:2]
+    size = reduced_size(width, height, max_px)
+    if size == (width, height):
+        return np.ascontiguousarray(image), (width, height)
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), (width, height)
+
+
+def reduced_size(width: int, height: int, max_px: int) -> tuple[int, int]:
+    """(width, height) scaled so the longest side is at most ``max_px``; unchanged when already that small."""
+    longest = max(width, height)
+    if longest <= max_px:
+        return width, height
+    scale = max_px / longest
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def _tiff_reduced(path: Path, max_px: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+    try:
+        with rasterio.open(path) as src:
+            width, height = src.width, src.height
+            out_w, out_h = reduced_size(width, height, max_px)
+            bands = src.read(
+                indexes=_rgb_bands(src.count),
+                out_shape=(min(src.count, 3), out_h, out_w),
+                resampling=Resampling.average,
+            )
+            return _to_bgr8(bands, src.dtypes[0]), (width, height)
+    except (rasterio.errors.RasterioError, ValueError):  # unreadable, or samples that are not 8/16-bit
+        return None
+
+
+class WindowReader:
+    """Windows of one TIFF photo, ``reader[r0:r1, c0:c1]`` -> (h, w, 3) uint8 BGR, safe across threads (each
+    thread opens its own handle: a GDAL dataset must not be shared while it reads)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = str(path)
+        self._local = threading.local()
+        with rasterio.open(self.path) as src:
+            self.shape = (src.height, src.width, 3)
+            self._count, self._dtype = src.count, src.dtypes[0]
+
+    def _dataset(self) -> rasterio.io.DatasetReader:
+        src = getattr(self._local, "src", None)
+        if src is None:
+            src = self._local.src = rasterio.open(self.path)
+        return src
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = key
+        r0, r1, _ = rows.indices(self.shape[0])
+        c0, c1, _ = cols.indices(self.shape[1])
+        window = Window(c0, r0, max(c1 - c0, 0), max(r1 - r0, 0))
+        return _to_bgr8(self._dataset().read(indexes=_rgb_bands(self._count), window=window), self._dtype)
+
+
+def _rgb_bands(count: int) -> list[int]:
+    """The bands read: R, G, B of a colour photo (an alpha or NIR band after them is left), or its one band."""
+    return [1, 2, 3] if count >= 3 else [1]
+
+
+def _to_bgr8(bands: np.ndarray, dtype: str) -> np.ndarray:
+    """(bands, h, w) as read -> (h, w, 3) uint8 BGR; 16-bit data keeps its top 8 bits (full range)."""
+    if dtype == "uint16":
+        bands = (bands >> 8).astype(np.uint8)
+    elif dtype != "uint8":
+        raise ValueError(f"{dtype} photos are not supported (8- or 16-bit unsigned integers expected)")
+    if len(bands) == 1:
+        return np.ascontiguousarray(np.repeat(bands[0][..., None], 3, axis=2))
+    return np.ascontiguousarray(np.moveaxis(bands[::-1], 0, 2))
