@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
 from api.gcp_service import gcp_file
+from api.gps_service import side_file_fixes, with_side_file_gps
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
 from core.accounts import Principal
@@ -79,7 +80,8 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
             raise NotFoundError(f"flight {body.flight_id} not found")
         if len(flight.images) < 2:
             raise InvalidInputError(f"flight {flight.id} has {len(flight.images)} image(s); a mosaic needs at least 2")
-        frames = [_frame_input(settings, flight.id, image) for image in flight.images]
+        gps_source, fixes = side_file_fixes(settings.data_dir, flight.id)  # positions that override EXIF's
+        frames = [with_side_file_gps(_frame_input(settings, flight.id, i), gps_source, fixes) for i in flight.images]
         job = Job(
             flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued, owner_id=owner.user_id
         )

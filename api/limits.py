@@ -176,6 +176,9 @@ async def _read_body(scope: Scope, receive: Receive) -> tuple[bytes, ApiError | 
 
 MAX_GCP_BYTES = 5 * 1024 * 1024  # a GCP file (ODM gcp_list.txt or OpenSfM JSON)
 MULTIPART_OVERHEAD = 64 * 1024  # what a small multipart request adds to its file: boundaries, part headers
+# A GPS side file (geo.txt or CSV, ~60 bytes a frame: ~16000 frames). Its route keeps the default 1 MiB body
+# cap (it is not one of _UPLOAD_ROUTES), so the file is bounded below that cap by the multipart overhead.
+MAX_GPS_BYTES = MAX_JSON_BYTES - MULTIPART_OVERHEAD
 MAX_PART_HEADER_BYTES = 16 * 1024  # the headers of one multipart part
 
 

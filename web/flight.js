@@ -290,12 +290,31 @@ function modeChoice() {
 
 /** Upload a ground control point file (ODM gcp_list.txt or OpenSfM JSON); ortho jobs use it. */
 function gcpUpload(view, flightId) {
-  const input = h("input", {
-    id: "gcp-input", type: "file", accept: ".txt,.json,text/plain,application/json", class: "visually-hidden",
-    "data-testid": "gcp-input", "aria-describedby": "gcp-hint",
+  return sideFileUpload(view, {
+    key: "gcp", route: `/api/flights/${flightId}/gcps`, accept: ".txt,.json,text/plain,application/json",
+    title: "Ground control points ", what: "GCP file", summary: gcpSummary,
+    hint: "Used by ortho jobs to tie the map to surveyed points: ODM gcp_list.txt or OpenSfM ground_control_points.json. A new file replaces the previous one.",
   });
-  const status = h("p", { class: "muted small", role: "status", "aria-live": "polite", "data-testid": "gcp-status" });
-  const error = h("p", { class: "form-error", role: "alert", "data-testid": "gcp-error" });
+}
+
+/** Upload a GPS side file (ODM geo.txt or CSV name,lat,lon,alt[,accuracy]); later jobs take its positions. */
+function gpsUpload(view, flightId) {
+  return sideFileUpload(view, {
+    key: "gps", route: `/api/flights/${flightId}/gps`, accept: ".txt,.csv,text/plain,text/csv",
+    title: "GPS from a side file ", what: "GPS file", summary: gpsSummary,
+    hint: "Positions from a navigation log instead of the photos' EXIF: ODM geo.txt or a CSV name,lat,lon,alt[,accuracy]. Jobs started afterwards use it; a new file replaces the previous one.",
+  });
+}
+
+/** A file control that PUTs one side file to `spec.route` and says what the server made of it. */
+function sideFileUpload(view, spec) {
+  const key = spec.key;
+  const input = h("input", {
+    id: `${key}-input`, type: "file", accept: spec.accept, class: "visually-hidden",
+    "data-testid": `${key}-input`, "aria-describedby": `${key}-hint`,
+  });
+  const status = h("p", { class: "muted small", role: "status", "aria-live": "polite", "data-testid": `${key}-status` });
+  const error = h("p", { class: "form-error", role: "alert", "data-testid": `${key}-error` });
   input.addEventListener("change", async () => {
     const file = input.files && input.files[0];
     if (!file) return;
@@ -305,13 +324,13 @@ function gcpUpload(view, flightId) {
     error.textContent = "";
     status.textContent = `Checking ${file.name}…`;
     try {
-      const summary = await apiForm("PUT", `/api/flights/${flightId}/gcps`, form);
+      const summary = await apiForm("PUT", spec.route, form);
       if (view.signal.aborted) return;
-      status.textContent = gcpSummary(summary || {});
+      status.textContent = spec.summary(summary || {});
     } catch (err) {
       if (view.signal.aborted) return;
       status.textContent = "";
-      error.textContent = `Not stored (the previous GCP file, if any, is kept): ${messageOf(err)}`;
+      error.textContent = `Not stored (the previous ${spec.what}, if any, is kept): ${messageOf(err)}`;
     } finally {
       input.disabled = false;
       input.value = "";
@@ -321,10 +340,9 @@ function gcpUpload(view, flightId) {
   return h(
     "div",
     { class: "gcp-upload" },
-    h("h3", {}, "Ground control points ", h("span", { class: "muted small" }, "(optional)")),
-    h("p", { id: "gcp-hint", class: "muted small" },
-      "Used by ortho jobs to tie the map to surveyed points: ODM gcp_list.txt or OpenSfM ground_control_points.json. A new file replaces the previous one."),
-    h("label", { for: "gcp-input", class: "btn small" }, "Upload GCP file…"),
+    h("h3", {}, spec.title, h("span", { class: "muted small" }, "(optional)")),
+    h("p", { id: `${key}-hint`, class: "muted small" }, spec.hint),
+    h("label", { for: `${key}-input`, class: "btn small" }, `Upload ${spec.what}…`),
     input,
     status,
     error,
@@ -336,6 +354,14 @@ function gcpSummary(s) {
   const tail = missing.length ? ` Not in this flight: ${missing.join(", ")}.` : "";
   return `Stored ${s.file || "the GCP file"}: ${plural(s.points, "point")} (${s.with_position ?? "?"} with a position), `
     + `${plural(s.observations, "observation")}.${tail}`;
+}
+
+function gpsSummary(s) {
+  const missing = Array.isArray(s.images_not_in_flight) ? s.images_not_in_flight : [];
+  const tail = missing.length ? ` Not in this flight: ${missing.join(", ")}.` : "";
+  const src = s.gps_source || {};
+  return `Stored ${s.file || "the GPS file"} (${s.crs ?? "?"}): ${plural(s.fixes, "position")}; `
+    + `photos with GPS from the file: ${src.side_file ?? "?"}, from EXIF: ${src.exif ?? "?"}, none: ${src.none ?? "?"}.${tail}`;
 }
 
 function jobsPanel(view, flightId) {
@@ -389,6 +415,7 @@ function jobsPanel(view, flightId) {
     h("div", { class: "start-row" }, start, hint),
     error,
     gcpUpload(view, flightId),
+    gpsUpload(view, flightId),
     h("h3", { class: "jobs-list-heading" }, "Jobs of this flight"),
     list,
   );

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from workers.algorithms.sfm import GCP_FILE_NAMES
+from workers.gps_file import GPS_FILE_NAMES
 from workers.records import Alignment, Coverage, Frame, Georef, PairRecord, RejectedFrame
 
 if TYPE_CHECKING:  # imported where used: the API imports this module and must not load OpenCV
@@ -543,6 +544,11 @@ def job_workspace(data_dir: Path, job_id: int) -> JobWorkspace:
 def find_gcp_file(folder: Path) -> Path | None:
     """The GCP file in ``folder`` (ODM's or OpenSfM's name), if there is one."""
     return next((folder / n for n in GCP_FILE_NAMES if (folder / n).exists()), None)
+
+
+def find_gps_file(folder: Path) -> Path | None:
+    """The GPS side file in ``folder`` (ODM's ``geo.txt`` or the CSV's name), if there is one."""
+    return next((folder / n for n in GPS_FILE_NAMES if (folder / n).exists()), None)
 
 
 def flight_folder(data_dir: Path, flight_id: int) -> Path:

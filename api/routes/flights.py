@@ -4,12 +4,15 @@ from __future__ import annotations
 
 from fastapi import APIRouter, File, Response, UploadFile
 from sqlalchemy import func, select
+from starlette.concurrency import run_in_threadpool
 
 from api import job_service
 from api.auth import UserDep, Viewer, owner_filter
 from api.deps import DbDep, FlightId, SettingsDep
 from api.errors import NotFoundError
 from api.gcp_service import MAX_GCP_BYTES, store_gcps
+from api.gps_service import store_gps
+from api.limits import MAX_GPS_BYTES
 from api.models import FlightCreate, FlightDetail, FlightOut, ImageOut, UploadResult
 from api.uploads import display_name, store_uploads
 from core.db import Flight, Image
@@ -106,3 +109,17 @@ async def upload_gcps(
     """Set the flight's ground control points, used by ``mode: "ortho"`` jobs; replaces earlier ones."""
     content = await file.read(MAX_GCP_BYTES + 1)
     return store_gcps(db, settings.data_dir, flight_id, display_name(file.filename), content)
+
+
+@router.put("/{flight_id}/gps")
+async def upload_gps(
+    flight_id: FlightId,
+    db: DbDep,
+    settings: SettingsDep,
+    file: UploadFile = File(..., description="geo.txt (ODM) or a CSV name,lat,lon,alt[,accuracy]"),
+) -> dict:
+    """Set the flight's GPS side file: the photos it names take their position from it, not from EXIF, in
+    jobs created from now on; replaces the earlier file. Answers what it holds and each photo's GPS source."""
+    content = await file.read(MAX_GPS_BYTES + 1)
+    name = display_name(file.filename)
+    return await run_in_threadpool(store_gps, db, settings.data_dir, flight_id, name, content)  # pyproj: off the loop
