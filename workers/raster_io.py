@@ -79,7 +79,12 @@ def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
     and 1.96 s for rio-cogeo's ``cog_translate`` (which writes a second temporary GeoTIFF); same pixels,
     same size. Memory stays that of GDAL's block cache: nothing is read whole.
     """
-    options: dict[str, Any] = {"compress": compression.upper(), "blocksize": COG_BLOCK_PX, "num_threads": "ALL_CPUS"}
+    options: dict[str, Any] = {
+        "compress": compression.upper(),
+        "blocksize": COG_BLOCK_PX,
+        "num_threads": "ALL_CPUS",
+        "bigtiff": "IF_SAFER",  # past 4 GB (a gigapixel strip): BigTIFF
+    }
     if compression == "jpeg":
         options["quality"] = 90  # the COG driver stores 3-band JPEG as YCbCr
     else:

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from rasterio.windows import Window
 
-from workers.algorithms.mosaic import compose_block, gains_and_coverage, output_box
+from workers.algorithms.mosaic import SCRATCH_RAW_MAX_PX, compose_block, gains_and_coverage, output_box
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
 from workers.photo_io import WindowReader, reads_by_window
@@ -54,8 +54,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px)
 
     threads = thread_count(cfg.threads)
+    # uncompressed is fastest, but past SCRATCH_RAW_MAX_PX the scratch would take 4 B/px of disk
+    scratch_codec = None if geo.width * geo.height <= SCRATCH_RAW_MAX_PX else "deflate"
     with (
-        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=None) as write,
+        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=scratch_codec) as write,
         ThreadPoolExecutor(max_workers=threads) as pool,
     ):
         # Windows are composed on every core (OpenCV and NumPy release the GIL) and written in order by

@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
+import shutil
 from typing import Any
 
 import numpy as np
 
 from workers.algorithms.geometry import similarity_scale
 from workers.algorithms.mosaic import (
-    MAX_OUTPUT_PIXELS,
     apply_homography,
     fit_plane_to_map,
     frame_corners,
     map_grid,
+    output_size_problem,
     pixel_grid,
+    polygon_area,
     refine_grid,
 )
 from workers.config import MosaicConfig
@@ -50,11 +52,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             output_scale=factor,
             **grid,
         )
-    if result.width * result.height > MAX_OUTPUT_PIXELS:
-        raise PipelineError(
-            f"the mosaic would be {result.width}x{result.height} px; the alignment "
-            "is degenerate (frames do not lie in one plane)"
-        )
+    # the frames' own area on the output grid: plane px scaled as the grid is
+    frames_px = factor**2 * sum(
+        polygon_area(apply_homography(H, frame_corners(frames[k].width, frames[k].height))) for k, H in homs.items()
+    )
+    problem = output_size_problem(result.width, result.height, frames_px, shutil.disk_usage(ws.root).free)
+    if problem:
+        raise PipelineError(problem)
     ws.save_georef(result)
     progress(1.0, "georeferenced" if fit else "local pixel grid")
     return {

@@ -8,13 +8,14 @@ ground far away is smeared over a huge area by the projection.
 
 from __future__ import annotations
 
+import shutil
 from typing import Any
 
 import cv2
 import numpy as np
 
 from workers.algorithms.geometry import Camera
-from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, map_grid, pixel_grid
+from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, map_grid, output_size_problem, pixel_grid
 from workers.algorithms.sfm import ground_crop
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
@@ -67,7 +68,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             rejected=rejected,
         )
     )
-    ws.save_georef(_grid(adjusted["world"], homographies, sizes, gsd, report["gps_residual_rms_m"]))
+    grid = _grid(adjusted["world"], homographies, sizes, gsd, report["gps_residual_rms_m"])
+    problem = output_size_problem(grid.width, grid.height, None, shutil.disk_usage(ws.root).free)
+    if problem:
+        raise PipelineError(problem)
+    ws.save_georef(grid)
     progress(1.0, f"{len(homographies)} frames at {gsd * 100:.1f} cm/px")
     return {"frames": len(homographies), "rejected": len(rejected), "gsd_m": gsd, "ground_z": z0}
 

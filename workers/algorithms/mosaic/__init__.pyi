@@ -73,13 +73,25 @@ from .grid import (
     MIN_GPS_SPREAD_M as MIN_GPS_SPREAD_M,
 )
 from .grid import (
+    SCRATCH_RAW_MAX_PX as SCRATCH_RAW_MAX_PX,
+)
+from .grid import (
+    disk_needed as disk_needed,
+)
+from .grid import (
     fit_plane_to_map as fit_plane_to_map,
 )
 from .grid import (
     map_grid as map_grid,
 )
 from .grid import (
+    output_size_problem as output_size_problem,
+)
+from .grid import (
     pixel_grid as pixel_grid,
+)
+from .grid import (
+    polygon_area as polygon_area,
 )
 from .grid import (
     refine_grid as refine_grid,

@@ -10,7 +10,49 @@ import numpy as np
 from workers.algorithms.geometry import FLIP_Y, fit_similarity, lonlat_to_utm, similarity_scale, utm_epsg
 from workers.algorithms.mosaic.alignment import apply_homography
 
-MAX_OUTPUT_PIXELS = 4_000_000_000  # a larger grid means a broken alignment, not a real flight
+MAX_OUTPUT_PIXELS = 4_000_000_000  # ortho mode: a larger grid means a ground range gone wrong
+MAX_SPREAD = 1000.0  # planar: a grid this many times the frames' own area means the alignment broke
+# disk a mosaic needs per output px while it is written: the scratch GeoTIFF (3 bands and a mask,
+# uncompressed up to SCRATCH_RAW_MAX_PX, deflated beyond) and the COG with its overviews (measured:
+# about 1.2 B/px on drone mosaics, deflate with predictor; 2 allows for busier ground)
+SCRATCH_RAW_MAX_PX = 500_000_000
+COG_BYTES_PER_PX = 2.0
+
+
+def disk_needed(width: int, height: int) -> int:
+    """Bytes of free disk a ``width`` x ``height`` mosaic needs while it is written (an estimate)."""
+    px = width * height
+    scratch = 4.0 if px <= SCRATCH_RAW_MAX_PX else 2.5
+    return int(px * (scratch + COG_BYTES_PER_PX))
+
+
+def output_size_problem(width: int, height: int, frames_px: float | None, free_bytes: int) -> str | None:
+    """Why a ``width`` x ``height`` px mosaic cannot be written, in words, or None.
+
+    ``frames_px``: the frames' own area on the grid, summed (None: not checked). There is no fixed cap on the
+    size: a gigapixel strip is fine where the disk holds it.
+    """
+    if frames_px is not None and width * height > MAX_SPREAD * max(frames_px, 1e6):
+        return (
+            f"the mosaic would be {width}x{height} px, {width * height / max(frames_px, 1):.0f} times its "
+            "frames' area; the alignment is degenerate (frames do not lie in one plane)"
+        )
+    need = disk_needed(width, height)
+    if need > free_bytes:
+        return (
+            f"a {width}x{height} px mosaic needs about {need / 1e9:.1f} GB of free disk to be written and "
+            f"{free_bytes / 1e9:.1f} GB are free; free some space or compose it coarser (working_max_px, "
+            "output_resolution)"
+        )
+    return None
+
+
+def polygon_area(corners: np.ndarray) -> float:
+    """Area of a simple polygon (N, 2), shoelace formula, in the squared units of its coordinates."""
+    x, y = corners[:, 0], corners[:, 1]
+    return float(abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) / 2)
+
+
 MIN_GPS_SPREAD_M = 3.0  # below this, consumer GPS noise would dominate the fitted scale and rotation
 
 
