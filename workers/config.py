@@ -70,6 +70,10 @@ class MosaicConfig(BaseModel):
     perspective_damping: float = Field(1000.0, ge=0.0, le=1e6)  # adjustment: cost of perspective drift, 1/px
     gain_compensation: bool = True  # equalise brightness between overlapping frames
     feather_px: float = Field(60.0, ge=1.0, le=2000.0)  # width of the blending ramp at frame edges, px
+    # feather: every overlap cross-faded over feather_px; multiband: seams cut through the overlaps where the
+    # frames agree (graph cut on a low-resolution render), then Laplacian bands blended across them
+    blend: Literal["feather", "multiband"] = "feather"
+    blend_bands: int = Field(5, ge=1, le=8)  # multiband: pyramid levels; the coarsest blends over ~2^bands px
     block_px: int = Field(1024, ge=256, le=8192)  # output window edge when composing, px
     cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec for the mosaic
     # planar mode: the mosaic's pixels. working: those of the working copies (working_max_px on the longest

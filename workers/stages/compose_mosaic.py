@@ -13,7 +13,14 @@ import cv2
 import numpy as np
 from rasterio.windows import Window
 
-from workers.algorithms.mosaic import SCRATCH_RAW_MAX_PX, compose_block, gains_and_coverage, output_box
+from workers.algorithms.mosaic import (
+    SCRATCH_RAW_MAX_PX,
+    compose_block,
+    compose_block_multiband,
+    gains_and_coverage,
+    output_box,
+    seam_labels,
+)
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
 from workers.photo_io import WindowReader, reads_by_window
@@ -38,6 +45,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     gains, outline, area = gains_and_coverage(working_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation)
     ws.save_coverage(Coverage(outline, area))
     image_of: Callable[[int], Any] = working_of
+    working_sizes, working_to_frame = sizes, to_frame
     if cfg.output_resolution == "native":
         progress(0.05, "decoding the photos at full size")
         photos = _open_photos(ws, [frames[k] for k in sorted(to_frame)], cfg.threads)
@@ -50,7 +58,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     transform = geo.transform if geo.georeferenced else None
     windows = [(x, y, min(cfg.block_px, geo.width - x), min(cfg.block_px, geo.height - y)) for x, y in blocks]
 
+    if cfg.blend == "multiband":
+        progress(0.08, "cutting seams")
+        labels, label_scale = seam_labels(working_of, working_sizes, working_to_frame, gains, geo.width, geo.height)
+
     def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+        if cfg.blend == "multiband":
+            return compose_block_multiband(
+                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands
+            )
         return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px)
 
     threads = thread_count(cfg.threads)
@@ -88,6 +104,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "height": geo.height,
         "blocks": len(blocks),
         "output_resolution": cfg.output_resolution,
+        "blend": cfg.blend,
         "gains": {frames[k].name: g for k, g in gains.items()},
     }
 

@@ -40,6 +40,9 @@ from .compose import (
     compose_block as compose_block,
 )
 from .compose import (
+    compose_block_multiband as compose_block_multiband,
+)
+from .compose import (
     gains_and_coverage as gains_and_coverage,
 )
 from .compose import (
@@ -104,6 +107,18 @@ from .homography import (
 )
 from .homography import (
     spread_subset as spread_subset,
+)
+from .multiband import (
+    SEAM_PX as SEAM_PX,
+)
+from .multiband import (
+    blend_bands as blend_bands,
+)
+from .multiband import (
+    margin_px as margin_px,
+)
+from .multiband import (
+    seam_labels as seam_labels,
 )
 from .pairing import (
     candidate_pairs as candidate_pairs,

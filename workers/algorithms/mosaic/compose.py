@@ -19,6 +19,7 @@ from workers.algorithms.mosaic.blending import (
     warp_maps,
     warp_maps_strided,
 )
+from workers.algorithms.mosaic.multiband import blend_bands, margin_px, ownership
 
 OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains and the footprint
 
@@ -75,6 +76,48 @@ def compose_block(
     # where no frame reaches, acc is 0 and so is the pixel; convertScaleAbs rounds and saturates to uint8
     bgr = cv2.convertScaleAbs(cv2.multiply(acc, cv2.merge([inverse, inverse, inverse])))
     return bgr[..., ::-1], mask
+
+
+def compose_block_multiband(
+    image_of: Callable[[int], np.ndarray],
+    sizes: dict[int, tuple[int, int]],
+    to_frame: dict[int, np.ndarray],
+    boxes: dict[int, tuple[int, int, int, int]],
+    gains: dict[int, np.ndarray],
+    window: tuple[int, int, int, int],
+    labels: np.ndarray,
+    label_scale: float,
+    bands: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`compose_block` with seams and multiband blending (:mod:`~workers.algorithms.mosaic.multiband`):
+    each frame that owns part of the window, warped over the window and a margin, blended band by band by
+    its ownership (``labels`` at ``label_scale``). Same returns."""
+    x, y, w, h = window
+    m = margin_px(bands)
+    padded = (x - m, y - m, w + 2 * m, h + 2 * m)
+    images, weights = [], []
+    covered = np.zeros((h, w), bool)
+    for k, (bx0, by0, bx1, by1) in boxes.items():
+        if min(bx1, x + w + m) <= max(bx0, x - m) or min(by1, y + h + m) <= max(by0, y - m):
+            continue
+        valid = _feather_window(to_frame[k], padded, *sizes[k], 1.0) > 0
+        if not valid.any():
+            continue
+        covered |= valid[m : m + h, m : m + w]
+        # a pixel the low-resolution cut left to no frame (at the render's edge) still gets its covering frames
+        weight = ownership(labels, label_scale, k, padded) * valid + np.float32(1e-3) * valid
+        if weight.max() <= 2e-3 and not valid[m : m + h, m : m + w].any():
+            continue
+        g = gains[k].astype(np.float32)
+        warped = _warp(image_of(k), to_frame[k], padded).astype(np.float32)
+        images.append(cv2.multiply(warped, cv2.merge([np.full(warped.shape[:2], v, np.float32) for v in g])))
+        weights.append(weight.astype(np.float32))
+    if not images:
+        return np.zeros((h, w, 3), np.uint8), covered
+    blended = blend_bands(images, weights, bands)[m : m + h, m : m + w]
+    bgr = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
+    bgr[~covered] = 0
+    return bgr[..., ::-1], covered
 
 
 FEATHER_STEP_PX = 8  # _feather_window: the edge distance is evaluated every this many output px

@@ -1,0 +1,151 @@
+"""Seams and multiband blending (Burt & Adelson 1983; Brown & Lowe 2007, sec. 6; OpenCV's
+``detail::GraphCutSeamFinder`` and ``detail::MultiBandBlender``).
+
+Every mosaic pixel is owned by one frame: the owners come from a graph cut through the overlaps on a
+low-resolution render (the cut runs where the frames' colours and gradients agree, so a car or a tree's
+parallax ends up whole on one side). Each output window is then blended band by band: the frames' Laplacian
+pyramids weighted by the Gaussian pyramids of their ownership, so fine detail switches sharply at the seam
+and coarse brightness blends over a wide band. A window is composed with a margin wide enough for the
+coarsest band, so window edges never show and memory stays that of a window.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from workers.algorithms.mosaic.blending import feather_weights, warp_maps
+
+SEAM_PX = 512  # longest side of the render the seams are cut on (cv2.Stitcher cuts at about 0.1 MP)
+
+
+def seam_labels(
+    image_of: Callable[[int], np.ndarray],
+    sizes: dict[int, tuple[int, int]],
+    to_frame: dict[int, np.ndarray],
+    gains: dict[int, np.ndarray],
+    width: int,
+    height: int,
+) -> tuple[np.ndarray, float]:
+    """(lh, lw) int32 owner of every pixel of a low-resolution render of the output grid (-1: no frame) and
+    that render's scale (low-res px per output px).
+
+    Frames are rendered gain-corrected, so the cut sees the colours the mosaic will show.
+    """
+    r = min(1.0, SEAM_PX / max(width, height))
+    lw, lh = max(1, round(width * r)), max(1, round(height * r))
+    low_to_out = np.diag([1 / r, 1 / r, 1.0])
+    keys = sorted(to_frame)
+    images, masks = [], []
+    for k in keys:
+        map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
+        inside = feather_weights(map_x, map_y, *sizes[k], 1.0) > 0
+        pixels = np.zeros((lh, lw, 3), np.float32)
+        if inside.any():
+            pixels = _sample_low(image_of(k), map_x, map_y) * gains[k].astype(np.float32)[None, None, :]
+        images.append(pixels)
+        masks.append(inside.astype(np.uint8) * np.uint8(255))
+    labels = np.full((lh, lw), -1, np.int32)
+    # each frame cut to its own box with that box's corner: the finder builds a graph per overlap of boxes
+    boxes = [_bbox(m) for m in masks]
+    crops = [(images[n][y0:y1, x0:x1], masks[n][y0:y1, x0:x1]) for n, (x0, y0, x1, y1) in enumerate(boxes)]
+    if len(keys) > 1:
+        finder = cv2.detail_GraphCutSeamFinder("COST_COLOR_GRAD")  # type: ignore[attr-defined]
+        found = finder.find(
+            [np.ascontiguousarray(c[0]) for c in crops],
+            [(b[0], b[1]) for b in boxes],
+            [cv2.UMat(np.ascontiguousarray(c[1])) for c in crops],  # type: ignore[call-overload]
+        )
+        owned = [np.asarray(cv2.UMat.get(m) if isinstance(m, cv2.UMat) else m) for m in found]
+    else:
+        owned = [c[1] for c in crops]
+    for n in range(len(keys) - 1, -1, -1):  # a pixel left to two frames goes to the first
+        x0, y0, x1, y1 = boxes[n]
+        view = labels[y0:y1, x0:x1]
+        view[owned[n] > 0] = keys[n]
+    return labels, r
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of a mask's non-zero pixels; a 1 px box at the origin for an empty one."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return 0, 0, 1, 1
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
+def _sample_low(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` at the maps, reading only the rows and columns they reach."""
+    c0 = max(int(np.floor(np.nanmin(map_x))) - 1, 0)
+    r0 = max(int(np.floor(np.nanmin(map_y))) - 1, 0)
+    c1 = min(int(np.ceil(np.nanmax(map_x))) + 2, image.shape[1])
+    r1 = min(int(np.ceil(np.nanmax(map_y))) + 2, image.shape[0])
+    if c1 <= c0 or r1 <= r0:
+        return np.zeros((*map_x.shape, 3), np.float32)
+    crop = np.ascontiguousarray(image[r0:r1, c0:c1])
+    return cv2.remap(crop, map_x - c0, map_y - r0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+
+
+def margin_px(bands: int) -> int:
+    """Margin a window needs so its coarsest band is what the whole mosaic's would be there: each pyrDown's
+    5-tap kernel reaches 2 px of its level, 2^(l+1) output px at level l, summed over the levels."""
+    return int(sum(2 ** (level + 1) for level in range(bands + 1))) + 2**bands
+
+
+def ownership(labels: np.ndarray, scale: float, k: int, window: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: where frame ``k`` owns output ``window``, the low-resolution labels brought
+    to full resolution bilinearly (a seam a few output px wide, which the bands then shape)."""
+    x, y, w, h = window
+    owned = (labels == k).astype(np.float32)
+    # output pixel centre (x + i + 0.5) -> low-res pixel centre coordinate (x + i + 0.5) * scale - 0.5
+    M = np.array([[scale, 0.0, (x + 0.5) * scale - 0.5], [0.0, scale, (y + 0.5) * scale - 0.5]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    return cv2.warpAffine(owned, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+
+
+def blend_bands(images: list[np.ndarray], weights: list[np.ndarray], bands: int) -> np.ndarray:
+    """Multiband blend of (h, w, 3) float32 ``images`` by (h, w) float32 ``weights``: band l of the result is
+    the weights' Gaussian level l average of the images' Laplacian band l. Returns (h, w, 3) float32.
+
+    OpenCV's array operations throughout: NumPy's broadcasting of a weight over 3 channels cost as much as
+    the pyramids."""
+    h, w = images[0].shape[:2]
+    acc: list[np.ndarray] = []
+    wsum: list[np.ndarray] = []
+    for image, weight in zip(images, weights, strict=True):
+        lap = _laplacian_pyramid(image, bands)
+        gauss = _gaussian_pyramid(weight, bands)
+        for level, (band, g) in enumerate(zip(lap, gauss, strict=True)):
+            contribution = cv2.multiply(band, cv2.merge([g, g, g]))
+            if level == len(acc):
+                acc.append(contribution)
+                wsum.append(g.copy())
+            else:
+                cv2.add(acc[level], contribution, dst=acc[level])
+                cv2.add(wsum[level], g, dst=wsum[level])
+    levels = []
+    for a, s in zip(acc, wsum, strict=True):
+        inverse = cv2.divide(1.0, np.maximum(s, np.float32(1e-6)))
+        levels.append(cv2.multiply(a, cv2.merge([inverse, inverse, inverse])))
+    out = levels[-1]
+    for band in reversed(levels[:-1]):
+        out = cv2.add(cv2.pyrUp(out, dstsize=(band.shape[1], band.shape[0])), band)
+    return out[:h, :w]
+
+
+def _gaussian_pyramid(image: np.ndarray, bands: int) -> list[np.ndarray]:
+    levels = [image]
+    for _ in range(bands):
+        levels.append(cv2.pyrDown(levels[-1]))
+    return levels
+
+
+def _laplacian_pyramid(image: np.ndarray, bands: int) -> list[np.ndarray]:
+    gauss = _gaussian_pyramid(image, bands)
+    out = [
+        cv2.subtract(fine, cv2.pyrUp(coarse, dstsize=(fine.shape[1], fine.shape[0])))
+        for fine, coarse in zip(gauss[:-1], gauss[1:], strict=True)
+    ]
+    return [*out, gauss[-1]]
