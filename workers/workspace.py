@@ -68,6 +68,8 @@ _PAIRS = "pairs.json"
 _ALIGNMENT = "alignment.json"
 _GEOREF = "georef.json"
 _COVERAGE = "coverage.json"
+_SEAMS = "seams.json"  # multiband: the region each frame owns, output px
+_CUTLINES = "cutlines.geojson"
 _CORNERS = "corners.json"
 _CALIBRATION = "calibration.json"
 _CAMERAS = "cameras.json"
@@ -227,6 +229,23 @@ class JobWorkspace:
 
     def save_coverage(self, coverage: Coverage) -> None:
         self._save_json(_COVERAGE, coverage.to_json())
+
+    def save_seams(self, owned: dict[int, list[np.ndarray]]) -> None:
+        """Frame -> rings (N, 2) of the region it owns in a multiband mosaic, output px."""
+        self._save_json(_SEAMS, {str(k): [r.tolist() for r in rings] for k, rings in owned.items()})
+
+    def load_seams(self) -> dict[int, list[np.ndarray]] | None:
+        """What ``save_seams`` saved, or None for a mosaic without seams (feathered)."""
+        if not (self.root / _SEAMS).exists():
+            return None
+        return {int(k): [np.array(r, np.float64) for r in rings] for k, rings in self._json(_SEAMS).items()}
+
+    def remove_seams(self) -> None:
+        (self.root / _SEAMS).unlink(missing_ok=True)
+        (self.root / _CUTLINES).unlink(missing_ok=True)
+
+    def save_cutlines(self, collection: dict[str, Any]) -> None:
+        self._save_json(_CUTLINES, collection)
 
     def _native_image_file(self, index: int) -> Path:
         return self.root / "native" / f"frame_{index:04d}.npy"
@@ -466,6 +485,7 @@ class JobWorkspace:
             _MOSAIC,
             _REPORT,
             _FOOTPRINTS,
+            _CUTLINES,
             _CALIBRATION,
             _CAMERAS,
             _CRACKS_GEOJSON,

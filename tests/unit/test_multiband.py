@@ -3,10 +3,13 @@ and a single frame comes back as it was."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from tests.scenes import make_texture
 from workers.algorithms.mosaic import compose_block, compose_block_multiband, output_box, seam_labels
+from workers.workspace import JobWorkspace
 
 W, H = 600, 400  # output grid, px
 
@@ -77,3 +80,16 @@ def test_a_multiband_mosaic_shows_the_ground_where_it_lies(tmp_path) -> None:
     report = process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 1024, "blend": "multiband"})
     assert len(report["frames_used"]) == 6 and report["config"]["blend"] == "multiband"
     assert ground_colour_error(flight, tmp_path / "job" / "mosaic.tif") < 10.0
+    ws = JobWorkspace(tmp_path / "job")
+    assert "cutlines.geojson" in ws.outputs()
+    cutlines = json.loads((tmp_path / "job" / "cutlines.geojson").read_text())["features"]
+    footprints = {f["properties"]["index"]: f for f in ws.load_footprints()["features"]}
+    assert sorted(f["properties"]["index"] for f in cutlines) == sorted(footprints)  # every frame owns a part
+    for feature in cutlines:  # and what it owns lies inside its own footprint (lon/lat; a few px of slack)
+        lon, lat = np.concatenate([np.array(p[0]) for p in feature["geometry"]["coordinates"]]).T
+        outline = np.array(footprints[feature["properties"]["index"]]["geometry"]["coordinates"][0])
+        slack = 5 * report["gsd_m"] / 111_000
+        assert outline[:, 0].min() - slack <= lon.min() and lon.max() <= outline[:, 0].max() + slack
+        assert outline[:, 1].min() - slack <= lat.min() and lat.max() <= outline[:, 1].max() + slack
+    process_directory(tmp_path / "frames", tmp_path / "feather", {"working_max_px": 1024})
+    assert "cutlines.geojson" not in JobWorkspace(tmp_path / "feather").outputs()  # feathering cuts no seams

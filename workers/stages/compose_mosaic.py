@@ -19,6 +19,7 @@ from workers.algorithms.mosaic import (
     compose_block_multiband,
     gains_and_coverage,
     output_box,
+    owned_regions,
     seam_labels,
 )
 from workers.config import MosaicConfig
@@ -61,6 +62,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     if cfg.blend == "multiband":
         progress(0.08, "cutting seams")
         labels, label_scale = seam_labels(working_of, working_sizes, working_to_frame, gains, geo.width, geo.height)
+        ws.save_seams(owned_regions(labels, label_scale))
+    else:
+        ws.remove_seams()  # a feathered mosaic (again): no cut lines
 
     def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
         if cfg.blend == "multiband":

@@ -65,6 +65,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     ws.save_report(report)
     if geo.georeferenced:
         ws.save_footprints(_footprint_collection(frames, footprints))
+    seams = ws.load_seams()
+    if seams is not None:
+        ws.save_cutlines(_cutline_collection(frames, seams, geo))
     progress(1.0, "report")
     return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
 
@@ -147,5 +150,20 @@ def _footprint_collection(frames: dict[int, Frame], footprints: dict[int, np.nda
             "geometry": {"type": "Polygon", "coordinates": [np.vstack([c, c[:1]]).round(8).tolist()]},
         }
         for k, c in sorted(footprints.items())
+    ]
+    return {"type": "FeatureCollection", "features": features}
+
+
+def _cutline_collection(frames: dict[int, Frame], seams: dict[int, list[np.ndarray]], geo: Georef) -> dict[str, Any]:
+    """``cutlines.geojson``: the region each frame owns in a multiband mosaic (its cut lines are the borders
+    between them), in lon/lat, or in mosaic px when the mosaic is not georeferenced."""
+    features = [
+        {
+            "type": "Feature",
+            "properties": {"index": k, "name": frames[k].name},
+            "geometry": _polygon([_to_crs(geo, ring) for ring in rings], geo),
+        }
+        for k, rings in sorted(seams.items())
+        if k in frames
     ]
     return {"type": "FeatureCollection", "features": features}

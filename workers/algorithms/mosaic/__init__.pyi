@@ -118,6 +118,9 @@ from .multiband import (
     margin_px as margin_px,
 )
 from .multiband import (
+    owned_regions as owned_regions,
+)
+from .multiband import (
     seam_labels as seam_labels,
 )
 from .pairing import (

@@ -149,3 +149,14 @@ def _laplacian_pyramid(image: np.ndarray, bands: int) -> list[np.ndarray]:
         for fine, coarse in zip(gauss[:-1], gauss[1:], strict=True)
     ]
     return [*out, gauss[-1]]
+
+
+def owned_regions(labels: np.ndarray, scale: float) -> dict[int, list[np.ndarray]]:
+    """Frame -> outline rings (N, 2) of the region it owns, output px, traced on the labels' render."""
+    out: dict[int, list[np.ndarray]] = {}
+    for k in np.unique(labels[labels >= 0]).tolist():
+        contours, _ = cv2.findContours((labels == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        rings = [(c.reshape(-1, 2).astype(np.float64) + 0.5) / scale for c in contours if len(c) >= 3]
+        if rings:
+            out[int(k)] = rings
+    return out
