@@ -31,6 +31,8 @@ export async function showResult(view, job, card, outputs) {
   controls.append(opacityControl(mosaic));
   const footprints = apiUrl((byName["footprints.geojson"] || {}).url); // fetched from this service only
   controls.append(georeferenced && footprints ? footprintControl(view, map, footprints) : footprintUnavailable(georeferenced));
+  const cutlines = apiUrl((byName["cutlines.geojson"] || {}).url); // a multiband mosaic's seams only
+  if (georeferenced && cutlines) controls.append(cutlineControl(view, map, cutlines));
   controls.append(mosaicDownloads(byName), mosaicFacts(tilejson, georeferenced));
 }
 
@@ -97,7 +99,23 @@ function opacityControl(layer) {
 }
 
 function footprintControl(view, map, url) {
-  const box = h("input", { id: "footprints", type: "checkbox", checked: true, "data-testid": "footprints-toggle" });
+  return geojsonControl(view, map, url, {
+    id: "footprints", label: " Frame footprints ", checked: true,
+    style: { color: "#f59e0b", weight: 1.5, opacity: 0.9, fillOpacity: 0.04 },
+  });
+}
+
+/** The regions each frame owns in a multiband mosaic: their borders are the seams. Off at first. */
+function cutlineControl(view, map, url) {
+  return geojsonControl(view, map, url, {
+    id: "cutlines", label: " Cut lines (seams) ", checked: false,
+    style: { color: "#e11d48", weight: 1.2, opacity: 0.95, fill: false, dashArray: "4 3" },
+  });
+}
+
+/** A checkbox and a GeoJSON layer of per-frame polygons (properties index, name) fetched from `url`. */
+function geojsonControl(view, map, url, { id, label, checked, style }) {
+  const box = h("input", { id, type: "checkbox", checked, "data-testid": `${id}-toggle` });
   const note = h("span", { class: "muted small" });
   let layer = null;
   box.addEventListener("change", () => {
@@ -110,7 +128,7 @@ function footprintControl(view, map, url) {
     .then((geojson) => {
       if (view.signal.aborted) return;
       layer = L.geoJSON(geojson, {
-        style: { color: "#f59e0b", weight: 1.5, opacity: 0.9, fillOpacity: 0.04 },
+        style,
         onEachFeature: (feature, featureLayer) => {
           // A node, not a string: Leaflet sets a string tooltip as HTML, and the name is the photo's file name.
           const props = feature.properties || {};
@@ -126,7 +144,7 @@ function footprintControl(view, map, url) {
       box.disabled = true;
       note.textContent = `unavailable (${err.message})`;
     });
-  return h("div", { class: "control" }, h("label", { class: "check" }, box, " Frame footprints "), note);
+  return h("div", { class: "control" }, h("label", { class: "check" }, box, label), note);
 }
 
 function footprintUnavailable(georeferenced) {
@@ -139,6 +157,7 @@ const DOWNLOADS = {
   "mosaic.tif": { label: "Mosaic (Cloud-Optimized GeoTIFF)", testid: "download-cog" },
   "report.json": { label: "Processing report", testid: "download-report" },
   "footprints.geojson": { label: "Frame footprints", testid: "download-footprints", optional: true },
+  "cutlines.geojson": { label: "Cut lines (each frame's region)", testid: "download-cutlines", optional: true },
 };
 
 function mosaicDownloads(byName) {
