@@ -111,3 +111,23 @@ def overview_levels(width: int, height: int, block_px: int = COG_BLOCK_PX) -> li
         factor *= 2
         levels.append(factor)
     return levels
+
+
+WindowRead = Callable[[int, int, int, int], tuple[np.ndarray, np.ndarray]]
+
+
+@contextmanager
+def open_window_reader(path: Path) -> Iterator[WindowRead]:
+    """``read(x, y, w, h)`` -> (h', w', 3) uint8 RGB and (h', w') bool coverage of a mosaic's window, clipped
+    to the raster (so smaller than asked at its edges)."""
+    with rasterio.open(path) as src:
+
+        def read(x: int, y: int, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+            x0, y0 = max(x, 0), max(y, 0)
+            x1, y1 = min(x + w, src.width), min(y + h, src.height)
+            if x1 <= x0 or y1 <= y0:
+                return np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), bool)
+            window = Window(x0, y0, x1 - x0, y1 - y0)
+            return np.moveaxis(src.read(window=window), 0, 2), src.read_masks(1, window=window) > 0
+
+        yield read

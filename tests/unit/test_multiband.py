@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 
 from tests.scenes import make_texture
@@ -79,6 +80,7 @@ def test_a_multiband_mosaic_shows_the_ground_where_it_lies(tmp_path) -> None:
     flight = make_flight(tmp_path / "frames", n_frames=6, rotation_deg=10, scale_jitter=0.05, gps=True, seed=4)
     report = process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 1024, "blend": "multiband"})
     assert len(report["frames_used"]) == 6 and report["config"]["blend"] == "multiband"
+    assert 0 < report["mosaic"]["seam_visibility"] < 1.3  # the cut lines show no more than the ground does
     assert ground_colour_error(flight, tmp_path / "job" / "mosaic.tif") < 10.0
     ws = JobWorkspace(tmp_path / "job")
     assert "cutlines.geojson" in ws.outputs()
@@ -93,3 +95,26 @@ def test_a_multiband_mosaic_shows_the_ground_where_it_lies(tmp_path) -> None:
         assert outline[:, 1].min() - slack <= lat.min() and lat.max() <= outline[:, 1].max() + slack
     process_directory(tmp_path / "frames", tmp_path / "feather", {"working_max_px": 1024})
     assert "cutlines.geojson" not in JobWorkspace(tmp_path / "feather").outputs()  # feathering cuts no seams
+
+
+def test_seam_visibility_sees_a_step_and_not_a_smooth_join() -> None:
+    from workers.algorithms.mosaic import seam_points, seam_visibility
+
+    noise = np.random.default_rng(6).normal(128, 40, (200, 300, 3))
+    texture = np.clip(cv2.GaussianBlur(noise, (0, 0), 1.5), 0, 255)  # stationary: no line is special
+    labels = np.zeros((100, 150), np.int32)
+    labels[:, 75:] = 1  # the seam at output x = 150 (labels at half resolution)
+    points, normals = seam_points(labels, 0.5)
+    assert len(points) and np.allclose(points[:, 0], 150.0) and np.all(normals == [1.0, 0.0])
+
+    def reader(image: np.ndarray):
+        def read(x: int, y: int, w: int, h: int):
+            window = image[max(y, 0) : y + h, max(x, 0) : x + w]
+            return window, np.ones(window.shape[:2], bool)
+
+        return read
+
+    stepped = texture.copy()
+    stepped[:, 150:] = np.clip(stepped[:, 150:] * 1.4 + 25, 0, 255)  # right frame far brighter
+    assert seam_visibility(reader(texture.astype(np.uint8)), points, normals) < 1.3
+    assert seam_visibility(reader(stepped.astype(np.uint8)), points, normals) > 1.5

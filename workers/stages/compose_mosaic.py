@@ -21,12 +21,14 @@ from workers.algorithms.mosaic import (
     output_box,
     owned_regions,
     seam_labels,
+    seam_points,
+    seam_visibility,
 )
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map, thread_count
 from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
-from workers.raster_io import open_block_writer, translate_to_cog
+from workers.raster_io import open_block_writer, open_window_reader, translate_to_cog
 from workers.records import Coverage, Frame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
@@ -101,6 +103,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     progress(0.85, "writing COG with overviews")
     translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression)
     tmp.unlink(missing_ok=True)
+    visibility = None
+    if cfg.blend == "multiband":
+        progress(0.95, "measuring the seams")
+        with open_window_reader(ws.mosaic_path()) as read:
+            visibility = seam_visibility(read, *seam_points(labels, label_scale))
     ws.remove_native_images()
     progress(1.0, f"block {len(blocks)}/{len(blocks)}")
     return {
@@ -109,6 +116,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "blocks": len(blocks),
         "output_resolution": cfg.output_resolution,
         "blend": cfg.blend,
+        # multiband: colour step across the cut lines / the same 16 px beside them (1.0: invisible)
+        "seam_visibility": visibility,
         "gains": {frames[k].name: g for k, g in gains.items()},
     }
 

@@ -53,6 +53,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             "transform": geo.transform,
             "footprint": _polygon(outline, geo),
             "coverage_fraction": coverage.area_fraction,
+            "blend": cfg.blend,
+            # multiband: the colour step across the cut lines over the same 16 px beside them (1.0: invisible)
+            "seam_visibility": (ws.load_stage_report("compose_mosaic") or {}).get("seam_visibility"),
             # "working" or "native", and how many of the reference photo's px one mosaic px spans
             "resolution": cfg.output_resolution if cfg.mode == "planar" else "working",
             "photo_px_per_px": 1.0 / (geo.output_scale * ref.scale),

@@ -123,6 +123,12 @@ from .multiband import (
 from .multiband import (
     seam_labels as seam_labels,
 )
+from .multiband import (
+    seam_points as seam_points,
+)
+from .multiband import (
+    seam_visibility as seam_visibility,
+)
 from .pairing import (
     candidate_pairs as candidate_pairs,
 )

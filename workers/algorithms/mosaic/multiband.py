@@ -160,3 +160,54 @@ def owned_regions(labels: np.ndarray, scale: float) -> dict[int, list[np.ndarray
         if rings:
             out[int(k)] = rings
     return out
+
+
+def seam_points(labels: np.ndarray, scale: float, limit: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the cut lines, output px (x, y), and the unit normal across the seam at each: where the owner
+    changes between horizontal or vertical neighbours of the labels' render. At most ``limit``, evenly taken."""
+    points, normals = [], []
+    across_x = (labels[:, 1:] != labels[:, :-1]) & (labels[:, 1:] >= 0) & (labels[:, :-1] >= 0)
+    rows, cols = np.nonzero(across_x)
+    points.append(np.column_stack([(cols + 1) / scale, (rows + 0.5) / scale]))
+    normals.append(np.tile([1.0, 0.0], (len(rows), 1)))
+    across_y = (labels[1:, :] != labels[:-1, :]) & (labels[1:, :] >= 0) & (labels[:-1, :] >= 0)
+    rows, cols = np.nonzero(across_y)
+    points.append(np.column_stack([(cols + 0.5) / scale, (rows + 1) / scale]))
+    normals.append(np.tile([0.0, 1.0], (len(rows), 1)))
+    p, n = np.concatenate(points), np.concatenate(normals)
+    keep = np.unique(np.linspace(0, len(p) - 1, min(limit, len(p))).astype(int)) if len(p) else np.zeros(0, int)
+    return p[keep], n[keep]
+
+
+def seam_visibility(
+    read: Callable[[int, int, int, int], tuple[np.ndarray, np.ndarray]],
+    points: np.ndarray,
+    normals: np.ndarray,
+    offset_px: int = 16,
+) -> float | None:
+    """How much the cut lines show in a mosaic: the mean colour step across them (between the pixels 1 px
+    either side) over the same step measured ``offset_px`` to either side, parallel to the seam (1.0: the
+    seam is as invisible as any line of the ground; feathering's and multiband's on the same seams compare).
+
+    ``read(x, y, w, h)`` gives a window of the mosaic, (h, w, 3) and its (h, w) coverage; points whose profile
+    leaves the coverage are skipped. None without any usable point.
+    """
+    steps, references = [], []
+    reach = offset_px + 2
+    for (x, y), (nx, _) in zip(points, normals, strict=True):
+        cx, cy = int(np.floor(x)), int(np.floor(y))
+        if nx:  # seam between columns cx - 1 and cx: a row of pixels across it
+            pixels, mask = read(cx - reach, cy, 2 * reach, 1)
+            line, ok = pixels[0].astype(np.float64), mask[0]
+        else:
+            pixels, mask = read(cx, cy - reach, 1, 2 * reach)
+            line, ok = pixels[:, 0].astype(np.float64), mask[:, 0]
+        if len(line) < 2 * reach or not ok.all():
+            continue
+        # the seam lies between line[reach - 1] and line[reach]; colour steps between neighbours, per px
+        jumps = np.abs(np.diff(line, axis=0)).mean(axis=1)  # jumps[i]: between line[i] and line[i + 1]
+        steps.append(float(jumps[reach - 1]))
+        references.append(0.5 * float(jumps[reach - 1 - offset_px] + jumps[reach - 1 + offset_px]))
+    if not steps or np.mean(references) <= 0:
+        return None
+    return float(np.mean(steps) / np.mean(references))
