@@ -69,6 +69,8 @@ class MosaicConfig(BaseModel):
     max_tie_points_per_pair: int = Field(400, ge=20, le=5000)  # spread subset used in adjustment
     perspective_damping: float = Field(1000.0, ge=0.0, le=1e6)  # adjustment: cost of perspective drift, 1/px
     gain_compensation: bool = True  # equalise brightness between overlapping frames
+    # undo the lens' radial fall-off (vignetting), estimated from the overlaps (one camera for all frames)
+    vignetting_correction: bool = False
     feather_px: float = Field(60.0, ge=1.0, le=2000.0)  # width of the blending ramp at frame edges, px
     # feather: every overlap cross-faded over feather_px; multiband: seams cut through the overlaps where the
     # frames agree (graph cut on a low-resolution render), then Laplacian bands blended across them

@@ -45,7 +45,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     progress(0.0, "gain compensation")
     # gains and the outline from a 768 px render: the working copies are plenty for it, at any output scale
     working_of = partial(ws.load_compose_image, mmap=True)
-    gains, outline, area = gains_and_coverage(working_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation)
+    gains, outline, area, vignette = gains_and_coverage(
+        working_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation, cfg.vignetting_correction
+    )
     ws.save_coverage(Coverage(outline, area))
     image_of: Callable[[int], Any] = working_of
     working_sizes, working_to_frame = sizes, to_frame
@@ -71,9 +73,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
         if cfg.blend == "multiband":
             return compose_block_multiband(
-                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands
+                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands, vignette
             )
-        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px)
+        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette)
 
     threads = thread_count(cfg.threads)
     # uncompressed is fastest, but past SCRATCH_RAW_MAX_PX the scratch would take 4 B/px of disk
@@ -116,6 +118,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "blocks": len(blocks),
         "output_resolution": cfg.output_resolution,
         "blend": cfg.blend,
+        "vignetting": {"c1": vignette[0], "c2": vignette[1]} if cfg.vignetting_correction else None,
         # multiband: colour step across the cut lines / the same 16 px beside them (1.0: invisible)
         "seam_visibility": visibility,
         "gains": {frames[k].name: g for k, g in gains.items()},

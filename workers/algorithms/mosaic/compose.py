@@ -20,6 +20,7 @@ from workers.algorithms.mosaic.blending import (
     warp_maps_strided,
 )
 from workers.algorithms.mosaic.multiband import blend_bands, margin_px, ownership
+from workers.algorithms.mosaic.vignetting import falloff, fit_vignetting, radius2
 
 OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains and the footprint
 
@@ -40,8 +41,10 @@ def compose_block(
     gains: dict[int, np.ndarray],
     window: tuple[int, int, int, int],
     feather_px: float,
+    vignette: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One output window ``(x, y, w, h)``: every frame that reaches it warped, gain-corrected and feathered.
+    """One output window ``(x, y, w, h)``: every frame that reaches it warped, gain-corrected and feathered
+    (and its lens fall-off ``vignette`` undone, :func:`~workers.algorithms.mosaic.vignetting.falloff`).
 
     ``image_of(k)`` gives frame ``k``'s (H, W, 3) uint8 BGR pixels, ``sizes[k]`` its (W, H); ``to_frame[k]`` maps
     output px to its px (memory-mapped: only the rows and columns
@@ -61,12 +64,13 @@ def compose_block(
         if sx1 <= sx0 or sy1 <= sy0:
             continue
         sub = (sx0, sy0, sx1 - sx0, sy1 - sy0)
-        weight = _feather_window(to_frame[k], sub, *sizes[k], feather_px)
+        weight, rho2 = _feather_window(to_frame[k], sub, *sizes[k], feather_px, with_radius=vignette != (0.0, 0.0))
         if not cv2.countNonZero(weight):
             continue
         pixels = _warp(image_of(k), to_frame[k], sub)
         g = gains[k].astype(np.float32)
-        weighted = cv2.multiply(pixels, cv2.merge([weight * g[0], weight * g[1], weight * g[2]]), dtype=cv2.CV_32F)
+        scaled = weight if rho2 is None else weight / falloff(rho2, vignette)  # brightness, not blending weight
+        weighted = cv2.multiply(pixels, cv2.merge([scaled * g[0], scaled * g[1], scaled * g[2]]), dtype=cv2.CV_32F)
         rows, cols = slice(sy0 - y, sy1 - y), slice(sx0 - x, sx1 - x)
         acc_view, wsum_view = acc[rows, cols], wsum[rows, cols]
         cv2.add(acc_view, weighted, dst=acc_view)
@@ -88,6 +92,7 @@ def compose_block_multiband(
     labels: np.ndarray,
     label_scale: float,
     bands: int,
+    vignette: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`compose_block` with seams and multiband blending (:mod:`~workers.algorithms.mosaic.multiband`):
     each frame that owns part of the window, warped over the window and a margin, blended band by band by
@@ -100,7 +105,8 @@ def compose_block_multiband(
     for k, (bx0, by0, bx1, by1) in boxes.items():
         if min(bx1, x + w + m) <= max(bx0, x - m) or min(by1, y + h + m) <= max(by0, y - m):
             continue
-        valid = _feather_window(to_frame[k], padded, *sizes[k], 1.0) > 0
+        edge, rho2 = _feather_window(to_frame[k], padded, *sizes[k], 1.0, with_radius=vignette != (0.0, 0.0))
+        valid = edge > 0
         if not valid.any():
             continue
         covered |= valid[m : m + h, m : m + w]
@@ -110,7 +116,8 @@ def compose_block_multiband(
             continue
         g = gains[k].astype(np.float32)
         warped = _warp(image_of(k), to_frame[k], padded).astype(np.float32)
-        images.append(cv2.multiply(warped, cv2.merge([np.full(warped.shape[:2], v, np.float32) for v in g])))
+        scale = np.ones(warped.shape[:2], np.float32) if rho2 is None else 1.0 / falloff(rho2, vignette)
+        images.append(cv2.multiply(warped, cv2.merge([scale * v for v in g])))
         weights.append(weight.astype(np.float32))
     if not images:
         return np.zeros((h, w, 3), np.uint8), covered
@@ -124,8 +131,13 @@ FEATHER_STEP_PX = 8  # _feather_window: the edge distance is evaluated every thi
 
 
 def _feather_window(
-    to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int, ramp_px: float
-) -> np.ndarray:
+    to_frame: np.ndarray,
+    window: tuple[int, int, int, int],
+    width: int,
+    height: int,
+    ramp_px: float,
+    with_radius: bool = False,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """(h, w) float32 feathering weight of a ``width`` x ``height`` frame over an output ``window``:
     :func:`feather_weights` of :func:`warp_maps`, with the maps computed every ``FEATHER_STEP_PX`` output px
     and interpolated bilinearly in between.
@@ -141,7 +153,8 @@ def _feather_window(
     # fine pixel (i, j) sits at coarse position (i / step, j / step)
     zoom = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
     fine = cv2.warpAffine(coarse, zoom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    return feather_weights(fine[..., 0], fine[..., 1], width, height, ramp_px)
+    weight = feather_weights(fine[..., 0], fine[..., 1], width, height, ramp_px)
+    return weight, radius2(fine[..., 0], fine[..., 1], width, height) if with_radius else None
 
 
 def _warp(image: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
@@ -179,20 +192,27 @@ def gains_and_coverage(
     width: int,
     height: int,
     enabled: bool,
-) -> tuple[dict[int, np.ndarray], list[np.ndarray], float]:
+    vignetting: bool = False,
+) -> tuple[dict[int, np.ndarray], list[np.ndarray], float, tuple[float, float]]:
     """Gains from a low-resolution render of every frame on the ``width`` x ``height`` output grid, and the
-    mosaic's coverage: outline rings (N, 2) in output px and the share of the grid covered."""
+    mosaic's coverage: outline rings (N, 2) in output px and the share of the grid covered; with
+    ``vignetting``, first the lens' radial fall-off (:mod:`~workers.algorithms.mosaic.vignetting`), which the
+    gains are then measured without. Returns gains, outline, coverage and the fall-off's (c1, c2)."""
     r = min(1.0, OVERVIEW_PX / max(width, height))
     lw, lh = max(1, round(width * r)), max(1, round(height * r))
     low_to_out = np.diag([1 / r, 1 / r, 1.0])
     keys = sorted(to_frame)
-    images, masks = [], []
+    images, masks, radii = [], [], []
     for k in keys:
         map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
         inside = feather_weights(map_x, map_y, *sizes[k], 2.0 / r) >= 1.0
         image = image_of(k)
         images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
         masks.append(inside)
+        radii.append(radius2(map_x, map_y, *sizes[k]))
+    vignette = fit_vignetting(images, masks, radii) if vignetting else (0.0, 0.0)
+    if vignette != (0.0, 0.0):
+        images = [im / falloff(rho2, vignette)[..., None] for im, rho2 in zip(images, radii, strict=True)]
     gains = np.ones((len(keys), 3))
     if enabled:
         means, counts = overlap_statistics(images, masks)
@@ -200,4 +220,4 @@ def gains_and_coverage(
     union = np.any(masks, axis=0).astype(np.uint8) if masks else np.zeros((lh, lw), np.uint8)
     contours, _ = cv2.findContours(union, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     outline = [(c.reshape(-1, 2).astype(np.float64) + 0.5) / r for c in contours if len(c) >= 3]
-    return {k: gains[n] for n, k in enumerate(keys)}, outline, float(union.mean())
+    return {k: gains[n] for n, k in enumerate(keys)}, outline, float(union.mean()), vignette
