@@ -1,0 +1,47 @@
+"""What stages, the API, tests and benchmarks may import from ``workers.algorithms.disparity``."""
+
+from .local import (
+    grey as grey,
+)
+from .local import (
+    local as local,
+)
+from .middlebury import (
+    StereoPair as StereoPair,
+)
+from .middlebury import (
+    read_pair as read_pair,
+)
+from .postprocess import (
+    Disparity as Disparity,
+)
+from .postprocess import (
+    fill_background as fill_background,
+)
+from .postprocess import (
+    left_right_check as left_right_check,
+)
+from .postprocess import (
+    remove_speckles as remove_speckles,
+)
+from .scoring import (
+    Score as Score,
+)
+from .scoring import (
+    score_disparity as score_disparity,
+)
+from .sgbm import (
+    REFERENCE as REFERENCE,
+)
+from .sgbm import (
+    TUNED as TUNED,
+)
+from .sgbm import (
+    SgbmParams as SgbmParams,
+)
+from .sgbm import (
+    opencv_sgbm as opencv_sgbm,
+)
+from .sgbm import (
+    sgbm as sgbm,
+)
