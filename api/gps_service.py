@@ -72,13 +72,3 @@ def side_file_fixes(data_dir: Path, flight_id: int) -> tuple[str, dict[str, GpsF
     except (UnicodeDecodeError, ValueError) as exc:
         raise InvalidInputError(f"flight {flight_id}: its GPS file {path.name} no longer reads ({exc})") from None
     return path.name, {fix.name: fix for fix in parsed.fixes}
-
-
-def with_side_file_gps(frame: dict[str, Any], source: str, fixes: dict[str, GpsFix]) -> dict[str, Any]:
-    """A job input entry with the side file's position in place of its EXIF one, when the file names it.
-    ``gps`` keeps its ``{"lat", "lon", "alt"}`` shape; the accuracy (m, or None) is a key of its own."""
-    fix = fixes.get(frame["name"])
-    if fix is None:
-        return frame
-    gps = {"lat": fix.lat, "lon": fix.lon, "alt": fix.alt}
-    return {**frame, "gps": gps, "gps_accuracy_m": fix.accuracy_m, "gps_source": source}

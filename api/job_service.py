@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
 from api.gcp_service import gcp_file
-from api.gps_service import side_file_fixes, with_side_file_gps
+from api.gps_service import side_file_fixes
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
 from core.accounts import Principal
@@ -23,6 +23,7 @@ from core.kinds import JobStatus
 from core.settings import Settings
 from workers.algorithms.geometry import Camera
 from workers.config import build_config
+from workers.gps_file import with_side_file_gps
 from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import flight_folder, job_workspace
 

@@ -19,6 +19,7 @@ import csv
 import math
 import re
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pyproj import CRS, Transformer
@@ -258,3 +259,13 @@ def _refuse_duplicates(names: list[tuple[int, str]]) -> None:
     for number, name in names:
         if (earlier := first.setdefault(name, number)) != number:
             raise ValueError(f"line {number}: {name} is listed twice, on lines {earlier} and {number}")
+
+
+def with_side_file_gps(frame: dict[str, Any], source: str, fixes: dict[str, GpsFix]) -> dict[str, Any]:
+    """A job input entry with the side file's position in place of its EXIF one, when the file names it.
+    ``gps`` keeps its ``{"lat", "lon", "alt"}`` shape; the accuracy (m, or None) is a key of its own."""
+    fix = fixes.get(frame["name"])
+    if fix is None:
+        return frame
+    gps = {"lat": fix.lat, "lon": fix.lon, "alt": fix.alt}
+    return {**frame, "gps": gps, "gps_accuracy_m": fix.accuracy_m, "gps_source": source}

@@ -9,15 +9,19 @@ whole. Pixels come back as OpenCV does them: (H, W, 3) uint8 BGR.
 from __future__ import annotations
 
 import threading
+import warnings
 from pathlib import Path
 
 import cv2
 import numpy as np
 import rasterio
 from rasterio.enums import Resampling
+from rasterio.errors import NotGeoreferencedWarning
 from rasterio.windows import Window
 
 TIFF_SUFFIXES = (".tif", ".tiff")
+# a photo has no map placement; rasterio would say so on every open
+warnings.filterwarnings("ignore", category=NotGeoreferencedWarning, module="rasterio")
 
 
 def reads_by_window(path: str | Path) -> bool:

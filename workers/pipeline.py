@@ -140,6 +140,7 @@ def process_directory(
 
     ``out_dir`` becomes the job workspace: ``mosaic.tif`` and ``report.json`` end up there.
     """
+    from workers.gps_file import GPS_FILE_NAMES, parse_gps_file, with_side_file_gps
     from workers.image_meta import InvalidImageError, inspect_image
 
     paths = sorted(p for p in Path(src_dir).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png", ".tif", ".tiff"})
@@ -153,6 +154,13 @@ def process_directory(
     # a thread per core: Pillow releases the GIL while it decodes
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         frames = list(pool.map(inspect, paths))
+    side_file = next((Path(src_dir) / n for n in GPS_FILE_NAMES if (Path(src_dir) / n).exists()), None)
+    if side_file is not None:  # geo.txt or gps.csv beside the photos: its positions over EXIF's, as jobs do
+        try:
+            fixes = {f.name: f for f in parse_gps_file(side_file.name, side_file.read_text(encoding="utf-8")).fixes}
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise PipelineError(f"{side_file.name}: {exc}") from None
+        frames = [with_side_file_gps(frame, side_file.name, fixes) for frame in frames]
     if len(frames) < 2:
         raise PipelineError(f"{src_dir} holds {len(frames)} usable image(s); a mosaic needs at least 2")
     ws = JobWorkspace(out_dir)

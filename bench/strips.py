@@ -1,0 +1,159 @@
+"""Aerial strips with known truth: a synthetic multi-lens strip through the whole pipeline, timed and checked.
+
+Run by hand from the repository root::
+
+    .venv/bin/python bench/strips.py [--frames 40] [--size 75000 1800] [--options '{"...": ...}'] [--keep DIR]
+
+Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD steps, vignetting, noisy GPS in a
+side ``gps.csv``) before the clock starts; the pipeline then runs in a spawned child process (its own peak
+memory). Printed: stage times and frames per hour, peak RSS, disk used, tie-point RMS, every frame corner's
+error against the truth after one similarity (ground px, which are native px), the frame centres' absolute
+error in metres against the GPS noise / sqrt(frames) the issue asks for, and the mosaic's size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # run as a script from a checkout, installed or not
+
+DEFAULT_OPTIONS = {"feature_type": "harris_ncc", "output_resolution": "native", "working_max_px": 20000}
+
+
+def peak_rss_mib() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
+
+
+def run_pipeline(src: str, out: str, options: dict[str, Any]) -> dict[str, Any]:
+    """Child: the whole pipeline; its report, wall time and peak memory (stages imported first, as a worker)."""
+    from workers.pipeline import pipeline_key, process_directory, stage_function, stage_names
+
+    for stage in stage_names(pipeline_key("mosaic", options)):
+        stage_function(stage)
+    started = time.perf_counter()
+    try:
+        report = process_directory(Path(src), Path(out), options)
+    except Exception as exc:  # a benchmark reports the failure instead of dying
+        return {"ok": False, "status": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - started}
+    return {"ok": True, "seconds": time.perf_counter() - started, "peak_mib": peak_rss_mib(), "report": report}
+
+
+def _child(conn: Any, args: tuple[Any, ...]) -> None:
+    conn.send(run_pipeline(*args))
+    conn.close()
+
+
+def in_child(*args: Any) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(send, args))
+    proc.start()
+    send.close()
+    try:
+        result: dict[str, Any] = recv.recv()
+    except EOFError:
+        result = {"ok": False, "status": f"child died, exit code {proc.exitcode}", "seconds": float("nan")}
+    proc.join()
+    return result
+
+
+def truth_errors(strip: Any, job: Path) -> dict[str, float]:
+    """Corner errors (ground px) after one similarity, and frame centres' absolute errors (m)."""
+    from workers.algorithms.geometry import fit_similarity
+    from workers.algorithms.mosaic import apply_homography, frame_corners
+    from workers.workspace import JobWorkspace
+
+    ws = JobWorkspace(job)
+    align, geo, frames = ws.load_alignment(), ws.load_georef(), {f.index: f for f in ws.load_frames()}
+    predicted, truth, centres, true_centres = [], [], [], []
+    for k, H in sorted(align.homographies.items()):
+        f = frames[k]
+        predicted.append(apply_homography(H, frame_corners(f.width, f.height)))
+        truth.append(apply_homography(strip.homographies[k], frame_corners(f.orig_width, f.orig_height)))
+        centres.append(apply_homography(H, np.array([[(f.width - 1) / 2, (f.height - 1) / 2]]))[0])
+        true_centres.append(strip.frame_center_utm(k))
+    p, t = np.concatenate(predicted), np.concatenate(truth)
+    S = fit_similarity(p, t)
+    corner = np.linalg.norm(apply_homography(S, p) - t, axis=1)
+    out = {"corner_max_px": float(corner.max()), "corner_rms_px": float(np.sqrt(np.mean(corner**2)))}
+    if geo.georeferenced:
+        utm = apply_homography(geo.plane_to_map, np.array(centres))
+        absolute = np.linalg.norm(utm - np.array(true_centres), axis=1)
+        out.update(centre_abs_max_m=float(absolute.max()), centre_abs_rms_m=float(np.sqrt(np.mean(absolute**2))))
+    return out
+
+
+def folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--size", type=int, nargs=2, default=(75000, 1800), metavar=("WIDTH", "HEIGHT"))
+    parser.add_argument("--overlap", type=float, default=0.55)
+    parser.add_argument("--gps-noise-m", type=float, default=1.0)
+    parser.add_argument("--options", type=json.loads, default={}, help="job options over the strip defaults")
+    parser.add_argument("--keep", type=Path, default=None, help="keep frames and job here (default: a temp dir)")
+    parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
+    args = parser.parse_args(argv)
+    from tests.strip_scenes import make_strip
+
+    root = args.keep or Path(tempfile.mkdtemp(prefix="strips-"))
+    try:
+        started = time.perf_counter()
+        strip = make_strip(
+            root / "frames", args.frames, tuple(args.size), overlap=args.overlap, gps_noise_m=args.gps_noise_m
+        )
+        print(
+            f"rendered {args.frames} frames of {args.size[0]}x{args.size[1]} in {time.perf_counter() - started:.0f} s"
+        )
+        options = {**DEFAULT_OPTIONS, **args.options}
+        result = in_child(str(root / "frames"), str(root / "job"), options)
+        if not result["ok"]:
+            print(f"pipeline failed after {result['seconds']:.1f} s: {result['status']}")
+            return 1
+        report = result["report"]
+        figures: dict[str, Any] = {
+            "frames": args.frames,
+            "size": list(args.size),
+            "options": options,
+            "frames_used": len(report["frames_used"]),
+            "seconds": result["seconds"],
+            "frames_per_hour": 3600 * args.frames / result["seconds"],
+            "peak_mib": result["peak_mib"],
+            "input_bytes": folder_bytes(root / "frames"),
+            "job_bytes": folder_bytes(root / "job"),
+            "mosaic_px": report["mosaic"]["width"] * report["mosaic"]["height"],
+            "tie_point_rms_px": report["tie_point_rms_px"],
+            "tie_point_rms_px_original": report["tie_point_rms_px_original"],
+            "stage_seconds": report["stage_seconds"],
+            "gps_noise_over_sqrt_frames_m": args.gps_noise_m / np.sqrt(args.frames),
+            **truth_errors(strip, root / "job"),
+        }
+        for key, value in figures.items():
+            print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")
+        if args.json:
+            args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    finally:
+        if args.keep is None:
+            shutil.rmtree(root, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
