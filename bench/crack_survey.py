@@ -25,6 +25,8 @@ Every run is in its own spawned child (peak RSS = that run's VmHWM). Ratios are 
 at each of 30, 45 and 60 degrees) at ``mm_per_px`` 0.5x, 1x and 2x the photos' sampling: recall per width
 class (a crack is found when 80 % of its centreline lies within max(1 mm, 2 photo px) of a reported crack),
 total-length error of the cracks found, false length, and width error (estimate - truth) per class.
+``--widths-px`` and ``--ratios`` choose other width classes and output rasters; a summary of the width errors
+of the cracks not flagged below photo resolution closes the run.
 """
 
 from __future__ import annotations
@@ -154,7 +156,12 @@ def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
 HAIRLINE_WIDTHS_PX = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 
 
-def run_hairlines(seeds: list[int], angles: tuple[float, ...] = (30.0, 45.0, 60.0)) -> list[dict[str, Any]]:
+def run_hairlines(
+    seeds: list[int],
+    angles: tuple[float, ...] = (30.0, 45.0, 60.0),
+    widths_px: tuple[float, ...] = HAIRLINE_WIDTHS_PX,
+    ratios: tuple[float, ...] = (0.5, 1.0, 2.0),
+) -> list[dict[str, Any]]:
     """One row per (seed, angle, ratio): recall per width class, length, false length and width errors."""
     import numpy as np
 
@@ -169,12 +176,12 @@ def run_hairlines(seeds: list[int], angles: tuple[float, ...] = (30.0, 45.0, 60.
                     [(angle, 15.0)],
                     seed=seed,
                     frame_size=(800, 600),
-                    widths_px=HAIRLINE_WIDTHS_PX,
+                    widths_px=widths_px,
                     contrast=0.3,
                     blur_px=0.5,
                 )
                 p = scene.photo_mm_per_px
-                for ratio in (0.5, 1.0, 2.0):
+                for ratio in ratios:
                     started = time.perf_counter()
                     report = run_survey(
                         scene, Path(tmp) / f"s{seed}_{angle:.0f}" / f"x{ratio}", scene.options(round(ratio * p, 4))
@@ -222,17 +229,44 @@ def run_hairlines(seeds: list[int], angles: tuple[float, ...] = (30.0, 45.0, 60.
     return rows
 
 
+def print_width_errors(rows: list[dict[str, Any]]) -> None:
+    """Per angle and width class (photo px), the mean and worst width error (mm) of the unflagged cracks."""
+    import numpy as np
+
+    for angle in sorted({r["angle"] for r in rows}):
+        classes = sorted({w for r in rows if r["angle"] == angle for w in r["width_error_mm"]})
+        for w in classes:
+            errors = [
+                e
+                for r in rows
+                if r["angle"] == angle
+                for e, flagged in zip(r["width_error_mm"].get(w, []), r["flagged"].get(w, []), strict=True)
+                if not flagged
+            ]
+            flagged = sum(f for r in rows if r["angle"] == angle for f in r["flagged"].get(w, []))
+            if errors:
+                print(
+                    f"{angle:4.0f} deg, {w:4.2f} photo px: {len(errors):3d} measured, width error mean "
+                    f"{np.mean(errors):+.3f} mm, worst {max(errors, key=abs):+.3f} mm ({flagged} flagged)"
+                )
+            else:
+                print(f"{angle:4.0f} deg, {w:4.2f} photo px: all {flagged} flagged below photo resolution")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mm-per-px", type=float, default=0.1)
     parser.add_argument("--json", type=Path, help="also write the figures here")
     parser.add_argument("--hairlines", action="store_true", help="hairline recall and widths at 0.5x/1x/2x")
     parser.add_argument("--seeds", type=int, nargs="+", default=[31])
+    parser.add_argument("--widths-px", type=float, nargs="+", default=list(HAIRLINE_WIDTHS_PX))
+    parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 1.0, 2.0])
     args = parser.parse_args(argv)
     import numpy as np
 
     if args.hairlines:
-        rows = run_hairlines(args.seeds)
+        rows = run_hairlines(args.seeds, widths_px=tuple(args.widths_px), ratios=tuple(args.ratios))
+        print_width_errors(rows)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=2))
         return 0

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from workers.algorithms.geometry import Camera
 
@@ -227,6 +228,11 @@ def crack_fields(cracks: list[TrueCrack], shape: tuple[int, int]) -> tuple[np.nd
         points = np.rint(crack.line_mm / TEXTURE_MM_PER_PX * 16).astype(np.int32).reshape(-1, 1, 2)
         cv2.polylines(canvas, [points], False, 0, 1, cv2.LINE_8, shift=4)
         distance = cv2.distanceTransform(canvas, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * TEXTURE_MM_PER_PX
+        # that is the distance to the drawn pixels, up to half a texture pixel off the line, which widened every
+        # crack by ~0.03 mm: across the crack and its edges, the exact distance to the polyline instead
+        rows, cols = np.nonzero(distance < crack.width_mm / 2 + 2 * TEXTURE_MM_PER_PX)
+        exact, _ = cKDTree(dense_line(crack.line_mm, 0.005)).query(np.column_stack([cols, rows]) * TEXTURE_MM_PER_PX)
+        distance[rows, cols] = exact
         inside = crack.width_mm / 2 - distance
         widths = np.where(inside > field, np.float32(crack.width_mm), widths)
         field = np.maximum(field, inside)
@@ -318,6 +324,25 @@ class CurvedPanel:
         path.write_text("# curved panel, mm\n" + "\n".join(lines) + "\n")
 
 
+def _normals(field_mm: np.ndarray, sigma_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) float32 x and y of the unit normal of the nearest crack on the texture grid: the principal
+    direction of the crack field's smoothed gradient tensor (sign-free, so defined on the centreline too)."""
+    gy, gx = np.gradient(field_mm.astype(np.float32))
+    jxx, jxy, jyy = (cv2.GaussianBlur(g, (0, 0), sigma_px) for g in (gx * gx, gx * gy, gy * gy))
+    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+    return np.cos(theta).astype(np.float32), np.sin(theta).astype(np.float32)
+
+
+def _spread_cdf(t: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """P(U + V <= t) for independent U, V uniform on widths ``a`` and ``b`` centred on 0."""
+
+    def ramp2(x: np.ndarray) -> np.ndarray:
+        return np.maximum(x, 0.0) ** 2 / 2
+
+    h, k = (a + b) / 2, np.abs(a - b) / 2
+    return (ramp2(t + h) - ramp2(t + k) - ramp2(t - k) + ramp2(t - h)) / (a * b)
+
+
 def render_photo(
     camera: Camera,
     R: np.ndarray,
@@ -334,9 +359,10 @@ def render_photo(
     darker than the coating) on a dark background, blurred by a Gaussian PSF of ``blur_px``, with noise.
 
     With ``widths_mm`` (the crack width field of :func:`crack_fields`) a pixel's cover is the exact share of
-    its footprint (taken as a square across the crack) the crack covers, so a hairline narrower than a pixel
-    darkens it by its width over the footprint; without, the edge-only approximation ``0.5 + inside /
-    footprint`` (right for cracks wider than a pixel)."""
+    its footprint (the parallelogram of its neighbours' rays on the specimen, the crack locally straight) the
+    crack covers, so a hairline narrower than a pixel darkens it by its width over the footprint's extent
+    across it, and a row of pixels across a crack holds its exact darkness deficit; without, the edge-only
+    approximation ``0.5 + inside / footprint`` (right for cracks wider than a pixel)."""
     u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
     rays = camera.unproject(np.column_stack([u.ravel(), v.ravel()])) @ R  # R.T @ ray per row
     sy, hit, lit = specimen.trace(C, rays)
@@ -355,8 +381,12 @@ def render_photo(
     else:
         w = cv2.remap(widths_mm, col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
         d = np.maximum(w / 2 - inside, 0.0)  # distance from the crack's centreline
-        overlap = np.minimum(d + w / 2, footprint / 2) - np.maximum(d - w / 2, -footprint / 2)
-        cover = np.clip(overlap / footprint, 0.0, 1.0)
+        # the footprint is the parallelogram du x dv: across the crack (normal n) it spreads as the sum of two
+        # uniform variables |du . n| and |dv . n| wide (an oblique view's pixels are longer along the view)
+        nx, ny = (cv2.remap(c, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT) for c in _normals(field_mm))
+        a = np.maximum(np.abs(du[..., 0] * nx + du[..., 1] * ny), 1e-3 * footprint)
+        b = np.maximum(np.abs(dv[..., 0] * nx + dv[..., 1] * ny), 1e-3 * footprint)
+        cover = np.clip(_spread_cdf(d + w / 2, a, b) - _spread_cdf(d - w / 2, a, b), 0.0, 1.0)
     light = 0.75 + 0.5 * (0.6 * xy[..., 0] / width_mm + 0.4 * (1 - xy[..., 1] / height_mm))  # from the top right
     image = np.where(on_plate, albedo * light * shade * (1 - contrast * cover), 45.0)
     if blur_px > 0:
@@ -462,7 +492,6 @@ class CrackScore:
 def score_stage(stage: dict, truth: list[TrueCrack], tolerance_mm: float) -> CrackScore:
     """Score one stage of ``report.json`` against its true cracks: recall by centreline, false length, and the
     width of the reported crack that covers most of each true crack."""
-    from scipy.spatial import cKDTree
 
     reported = [np.concatenate([dense_line(np.array(p)) for p in c["paths_mm"] if len(p) > 1]) for c in stage["cracks"]]
     trees = [cKDTree(points) for points in reported]
@@ -481,7 +510,6 @@ def score_stage(stage: dict, truth: list[TrueCrack], tolerance_mm: float) -> Cra
 def rows_along(stage: dict, truth: list[TrueCrack], tolerance_mm: float) -> list[dict | None]:
     """Per true crack, the reported crack of ``stage`` (``report.json``) with most of its length within
     ``tolerance_mm`` of it, if over half (None: none)."""
-    from scipy.spatial import cKDTree
 
     out: list[dict | None] = []
     for crack in truth:

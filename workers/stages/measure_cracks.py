@@ -1,5 +1,6 @@
 """Stage ``measure_cracks``: every crack of every load stage as polylines in the rectified plane's mm, its
-length along the specimen's surface and its width."""
+length along the specimen's surface and its width (from its cross-section profile in the rectified image,
+see :mod:`workers.algorithms.cracks.profile`)."""
 
 from __future__ import annotations
 
@@ -12,11 +13,15 @@ from workers.algorithms.cracks import (
     Crack,
     background_px,
     crack_coverage,
+    crack_widths,
     darkening,
     measure_cracks,
     path_length,
+    profile_widths,
+    reference_contrast,
     summarise_cracks,
     to_gray,
+    with_widths,
 )
 from workers.algorithms.specimen import Surface
 from workers.config import CrackSurveyConfig
@@ -27,15 +32,25 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     """Write ``cracks/stage_NN.json`` per load stage: its cracks and their totals."""
     counts, totals = [], []
     surface = ws.load_surface()
-    for s in range(len(cfg.stages)):
-        progress(s / len(cfg.stages), f"load step {s + 1}/{len(cfg.stages)}")
+    mm = surface.mm_per_px
+    n = len(cfg.stages)
+    # one photo pixel in raster px per load step (rectify_specimen): how narrow a profile tells its contrast
+    photo_mm = (ws.load_stage_report("rectify_specimen") or {}).get("photo_mm_per_px") or [None] * n
+    photo_px = [(p or mm) / mm for p in photo_mm]
+    measured, fits = [], []
+    for s in range(n):
+        progress(0.8 * s / n, f"load step {s + 1}/{n}")
         mask = ws.load_crack_mask(s)
-        image, _ = ws.load_rectified(s)
-        coverage = crack_coverage(darkening(to_gray(image), mask, background_px(surface.mm_per_px)), mask)
-        cracks = [
-            along_surface(c, surface)
-            for c in measure_cracks(mask, surface.mm_per_px, coverage=coverage, min_length_mm=cfg.min_crack_length_mm)
-        ]
+        image, seen = ws.load_rectified(s)
+        grey = to_gray(image)
+        coverage = crack_coverage(darkening(grey, mask, background_px(mm)), mask)
+        measured.append(measure_cracks(mask, mm, coverage=coverage, min_length_mm=cfg.min_crack_length_mm))
+        paths = [[p / mm for p in c.paths_mm] for c in measured[s]]
+        fits.append(profile_widths(grey, mask, paths, seen=seen, background_px=background_px(mm)))
+    contrast = reference_contrast(fits, photo_px)  # the coating's cracks, all load steps together
+    for s in range(n):
+        widths = crack_widths(fits[s], photo_px[s], contrast) * mm
+        cracks = [along_surface(c, surface) for c in with_widths(measured[s], widths)]
         summary = summarise_cracks(cracks)
         ws.save_measured_cracks(
             s,
@@ -53,7 +68,7 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         counts.append(summary.count)
         totals.append(round(summary.total_length_mm, 2))
     progress(1.0, f"{sum(counts)} crack(s)")
-    return {"cracks": counts, "total_length_mm": totals}
+    return {"cracks": counts, "total_length_mm": totals, "crack_contrast": contrast}
 
 
 def along_surface(crack: Crack, surface: Surface) -> Crack:

@@ -99,6 +99,27 @@ from .network import (
 from .network import (
     upsample2 as upsample2,
 )
+from .profile import (
+    ProfileFit as ProfileFit,
+)
+from .profile import (
+    crack_widths as crack_widths,
+)
+from .profile import (
+    fit_blurred_line as fit_blurred_line,
+)
+from .profile import (
+    profile_widths as profile_widths,
+)
+from .profile import (
+    reference_contrast as reference_contrast,
+)
+from .profile import (
+    resolved as resolved,
+)
+from .profile import (
+    with_widths as with_widths,
+)
 from .skeleton import (
     thin as thin,
 )
