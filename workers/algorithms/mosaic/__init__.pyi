@@ -49,6 +49,15 @@ from .compose import (
     output_box as output_box,
 )
 from .features import (
+    FlannIndex as FlannIndex,
+)
+from .features import (
+    OverlapGuide as OverlapGuide,
+)
+from .features import (
+    PairIndices as PairIndices,
+)
+from .features import (
     detect as detect,
 )
 from .features import (
@@ -59,6 +68,9 @@ from .features import (
 )
 from .features import (
     match as match,
+)
+from .features import (
+    match_index as match_index,
 )
 from .features import (
     match_ratio as match_ratio,
@@ -137,4 +149,7 @@ from .pairing import (
 )
 from .ties import (
     refine_tie_points as refine_tie_points,
+)
+from .ties import (
+    refit_homography as refit_homography,
 )

@@ -6,7 +6,9 @@ Arrays in and out are host NumPy arrays; data moves to the device and back insid
 
 from __future__ import annotations
 
-from typing import Literal
+import threading
+from collections import Counter
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -16,6 +18,7 @@ from gpu_kernels.bf_match import match_descriptors
 from gpu_kernels.harris import harris_corners
 from gpu_kernels.ncc import match_ncc, window_descriptors
 from gpu_kernels.sift import sift
+from workers.algorithms.mosaic.homography import estimate_homography
 
 FeatureType = Literal["sift", "harris_ncc"]
 
@@ -86,19 +89,63 @@ def match(
     ratio: float,
     ncc_threshold: float,
     min_matches: int = 0,
+    indices: tuple[FlannIndex | None, FlannIndex | None] = (None, None),
+    guide: OverlapGuide | None = None,
 ) -> np.ndarray:
     """(M, 2) int64 index pairs (row of ``desc_a``, row of ``desc_b``) of mutual matches.
 
     ``min_matches``: OpenCV SIFT gives up early, empty, on a pair that cannot reach it (:func:`match_ratio`).
+    ``indices``: OpenCV SIFT only, :class:`FlannIndex` of ``desc_a`` and ``desc_b`` built beforehand (a frame
+    is in many pairs; its index is built once), None to build it here.
+    ``guide``: OpenCV SIFT only, search only the overlap the first matches predict (:func:`match_ratio`).
     """
     if uses_opencv(feature_type, device):
-        return match_ratio(desc_a, desc_b, ratio, min_matches)
+        return match_ratio(desc_a, desc_b, ratio, min_matches, indices, guide)
     a, b = to_device(desc_a, device), to_device(desc_b, device)
     if feature_type == "sift":
         found = match_descriptors(a, b, ratio=ratio, mutual=True)
         return np.column_stack([to_host(found.index_a), to_host(found.index_b)]).astype(np.int64)
     ncc = match_ncc(a, b, threshold=ncc_threshold, mutual=True)
     return np.column_stack([to_host(ncc.index_a), to_host(ncc.index_b)]).astype(np.int64)
+
+
+def match_index(desc: np.ndarray, feature_type: FeatureType, device: Device) -> FlannIndex | None:
+    """What :func:`match` searches in a frame's (N, D) float32 descriptors, built once per frame rather than
+    once per pair and direction: OpenCV SIFT's :class:`FlannIndex`; None where ``match`` needs none."""
+    return FlannIndex(desc) if uses_opencv(feature_type, device) and len(desc) >= 2 else None
+
+
+class PairIndices:
+    """Each frame's :func:`match_index` for matching ``pairs`` on several threads: built on first use, once,
+    and dropped after the frame's last pair (a FLANN index holds a copy of its 6000 x 128 descriptors, ~4.5
+    MB, so holding all of them grows with the flight; this holds the frames whose pairs are under way)."""
+
+    def __init__(
+        self,
+        descriptors: dict[int, np.ndarray],
+        pairs: list[tuple[int, int]],
+        feature_type: FeatureType,
+        device: Device,
+    ) -> None:
+        self._descriptors, self._kind = descriptors, (feature_type, device)
+        self._left = Counter(k for pair in pairs for k in pair)
+        self._built: dict[int, FlannIndex | None] = {}
+        self._locks = {k: threading.Lock() for k in self._left}  # one build per frame, others wait for it
+        self._count_lock = threading.Lock()
+
+    def get(self, frame: int) -> FlannIndex | None:
+        with self._locks[frame]:
+            if frame not in self._built:
+                self._built[frame] = match_index(self._descriptors[frame], *self._kind)
+            return self._built[frame]
+
+    def release(self, pair: tuple[int, int]) -> None:
+        """``pair`` is matched: drop the index of a frame that has no pair left."""
+        with self._count_lock:
+            for frame in pair:
+                self._left[frame] -= 1
+                if self._left[frame] == 0:
+                    self._built.pop(frame, None)
 
 
 def detect_sift(gray: np.ndarray, max_features: int) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +173,14 @@ def detect_sift(gray: np.ndarray, max_features: int) -> tuple[np.ndarray, np.nda
     return points, np.sqrt(desc).astype(np.float32)
 
 
-def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, min_matches: int = 0) -> np.ndarray:
+def match_ratio(
+    desc_a: np.ndarray,
+    desc_b: np.ndarray,
+    ratio: float,
+    min_matches: int = 0,
+    indices: tuple[FlannIndex | None, FlannIndex | None] = (None, None),
+    guide: OverlapGuide | None = None,
+) -> np.ndarray:
     """Nearest-neighbour matches that pass Lowe's ratio test in both directions.
 
     Parameters
@@ -137,6 +191,12 @@ def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, min_matche
         ``PROBE_SHARE``-th row of ``desc_a`` is searched first, and when they find fewer than
         ``min_matches / (2 PROBE_SHARE)`` (half the share of ``min_matches`` it would find in a pair just
         good enough) the pair is given up, empty. 0 searches every row.
+    indices : :class:`FlannIndex` of ``desc_a`` and of ``desc_b``, or None to build one here. Built once per
+        frame and shared by its pairs, they give the same matches as those built here (same seed, same trees).
+    guide : the keypoints of both frames, for a planar scene: the probe's matches (``min_matches`` > 0)
+        predict the overlap through a homography, and the other rows of ``desc_a`` are searched only where
+        they fall in frame b (:func:`in_predicted_overlap`). The matches are those of the unguided search
+        less the rows outside, which have no partner in frame b.
 
     Returns
     -------
@@ -144,7 +204,8 @@ def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, min_matche
     """
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.int64)
-    index_b = _flann_index(desc_b)
+    index_a, index_b = indices
+    index_b = FlannIndex(desc_b) if index_b is None else index_b
     # every PROBE_SHARE-th row: detectors list keypoints by scale and place, so a prefix would be one
     # part of the frame, maybe one the other frame does not see
     probing = np.zeros(len(desc_a), bool)
@@ -153,6 +214,8 @@ def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, min_matche
     probe = _ratio_one_way(desc_a[rows[0]], index_b, ratio)
     if min_matches > 0 and len(probe) * 2 * PROBE_SHARE < min_matches:
         return np.zeros((0, 2), np.int64)  # frames that do not overlap: 1/PROBE_SHARE of the work
+    if guide is not None and min_matches > 0:
+        rows[1] = rows[1][in_predicted_overlap(guide, rows[0][probe[:, 0]], probe[:, 1], rows[1])]
     rest = _ratio_one_way(desc_a[rows[1]], index_b, ratio)
     forward = np.concatenate([probe, rest])
     forward[:, 0] = np.concatenate([rows[0][probe[:, 0]], rows[1][rest[:, 0]]])
@@ -162,27 +225,67 @@ def match_ratio(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, min_matche
     # Only the rows of b that some row of a chose can be mutual: search back from those alone (a
     # tenth of b on a typical pair, so the check costs a fraction of the forward search).
     chosen = np.unique(forward[:, 1])
-    backward = _ratio_one_way(desc_b[chosen], _flann_index(desc_a), ratio)
-    back_map = dict(zip(chosen[backward[:, 0]].tolist(), backward[:, 1].tolist(), strict=True))
-    keep = [k for k, (a, b) in enumerate(forward.tolist()) if back_map.get(b) == a]
-    return forward[keep]
+    backward = _ratio_one_way(desc_b[chosen], FlannIndex(desc_a) if index_a is None else index_a, ratio)
+    back = np.full(len(desc_b), -1, np.int64)  # row of b -> its mutual candidate in a, -1 for none
+    back[chosen[backward[:, 0]]] = backward[:, 1]
+    return forward[back[forward[:, 1]] == forward[:, 0]]
 
 
 PROBE_SHARE = 8  # match_ratio: share of the query rows searched before deciding a pair is worth it
+FLANN_CHECKS = 64  # leaves a FLANN search visits: more finds the true nearest neighbour more often, slower
 
 
-def _flann_index(desc: np.ndarray) -> tuple[cv2.flann.Index, np.ndarray]:
-    """A FLANN kd-forest over ``desc``, with the array it searches (the index reads it, so it must live)."""
-    # FLANN kd-trees: the 2-NN search is approximate but ~10x faster than brute force at 6k features.
-    data = np.ascontiguousarray(desc, np.float32)
-    cv2.setRNGSeed(len(data))  # FLANN's randomised trees draw from OpenCV's RNG: same input, same trees
-    return cv2.flann.Index(data, {"algorithm": 1, "trees": 4}), data
+class OverlapGuide(NamedTuple):
+    """Where :func:`match_ratio` may look: both frames' keypoints and frame b's size."""
+
+    points_a: np.ndarray  # (N, 2) float32 pixel (x, y) of the rows of desc_a
+    points_b: np.ndarray  # (M, 2) float32 pixel (x, y) of the rows of desc_b
+    size_b: tuple[int, int]  # frame b's width, height, px
+    threshold_px: float  # USAC inlier threshold of the predicting homography, px
 
 
-def _ratio_one_way(desc_q: np.ndarray, index_t: tuple[cv2.flann.Index, np.ndarray], ratio: float) -> np.ndarray:
+GUIDE_MIN_INLIERS = 20  # probe inliers a predicted overlap needs (a pair with fewer is searched in full)
+GUIDE_MARGIN = 0.05  # the overlap is grown by this share of frame b's longest side, for the model's error
+
+
+def in_predicted_overlap(guide: OverlapGuide, probe_a: np.ndarray, probe_b: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(K,) bool: which ``rows`` of frame a fall in frame b (grown by ``GUIDE_MARGIN``) through the USAC
+    homography of the (P,) int matched rows ``probe_a``, ``probe_b``; all True when that model has fewer
+    than ``GUIDE_MIN_INLIERS`` inliers (a weak or non-overlapping pair: no prediction to trust)."""
+    everywhere = np.ones(len(rows), bool)
+    if len(probe_a) < GUIDE_MIN_INLIERS:
+        return everywhere
+    H, inliers = estimate_homography(guide.points_a[probe_a], guide.points_b[probe_b], guide.threshold_px)
+    if H is None or inliers.sum() < GUIDE_MIN_INLIERS:
+        return everywhere
+    q = guide.points_a[rows].astype(np.float64) @ H[:, :2].T + H[:, 2]
+    ahead = q[:, 2] > 1e-12  # points the model maps behind frame b's camera are in no overlap
+    xy = q[:, :2] / np.where(ahead, q[:, 2], 1.0)[:, None]
+    margin = GUIDE_MARGIN * max(guide.size_b)
+    lo, hi = -0.5 - margin, np.asarray(guide.size_b, np.float64) - 0.5 + margin
+    return ahead & np.all((xy >= lo) & (xy <= hi), axis=1)
+
+
+class FlannIndex:
+    """A FLANN kd-forest over (N, D) float32 descriptors, with the array it searches (the index reads it
+    in place, so it must live as long as the index).
+
+    Searching is read-only: pairs on several threads may share one frame's index.
+    """
+
+    def __init__(self, desc: np.ndarray) -> None:
+        # FLANN kd-trees: the 2-NN search is approximate but ~10x faster than brute force at 6k features.
+        self.data = np.ascontiguousarray(desc, np.float32)
+        cv2.setRNGSeed(len(self.data))  # FLANN's randomised trees draw from OpenCV's RNG: same input, same trees
+        self.index = cv2.flann.Index(self.data, {"algorithm": 1, "trees": 4})
+
+
+def _ratio_one_way(desc_q: np.ndarray, index_t: FlannIndex, ratio: float) -> np.ndarray:
     """(K, 2) int64 (query row, target row) of the queries whose nearest target passes the ratio test."""
     if not len(desc_q):
         return np.zeros((0, 2), np.int64)
-    nearest, dist2 = index_t[0].knnSearch(np.ascontiguousarray(desc_q, np.float32), 2, params={"checks": 64})
+    nearest, dist2 = index_t.index.knnSearch(
+        np.ascontiguousarray(desc_q, np.float32), 2, params={"checks": FLANN_CHECKS}
+    )
     good = dist2[:, 0] < ratio**2 * dist2[:, 1]  # FLANN's L2 distances are squared
     return np.column_stack([np.flatnonzero(good), nearest[good, 0]]).astype(np.int64)
