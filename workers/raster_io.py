@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from datetime import UTC, datetime
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -70,8 +72,12 @@ def open_block_writer(
         yield write
 
 
-def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
+def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
     """Copy the scratch GeoTIFF ``src`` into a COG at ``dst`` with overviews and its mask, atomically.
+
+    ``tags`` (GDAL metadata items such as ``TIFFTAG_IMAGEDESCRIPTION``) are set on ``src`` before the copy, so
+    the COG driver writes them as TIFF tags; given any, ``TIFFTAG_SOFTWARE`` ("Fotoskhema <version>") and
+    ``TIFFTAG_DATETIME`` (now, UTC, TIFF's "YYYY:MM:DD HH:MM:SS") are added unless named.
 
     The overviews are built into ``src`` first (GDAL's average over the data the mask admits), then GDAL's
     COG driver copies them and compresses every level on all cores in one pass. Measured on the Brighton
@@ -93,11 +99,23 @@ def translate_to_cog(src: Path, dst: Path, compression: str) -> None:
         options["predictor"] = 2
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256, GDAL_NUM_THREADS="ALL_CPUS"):
         with rasterio.open(src, "r+") as scratch:
+            if tags is not None:
+                scratch.update_tags(**{**provenance_tags(), **tags})
             levels = overview_levels(scratch.width, scratch.height)
             if levels:
                 scratch.build_overviews(levels, Resampling.average)
         with atomic_path(dst) as tmp:
             rio_copy(str(src), str(tmp), driver="COG", overviews="FORCE_USE_EXISTING", **options)
+
+
+def provenance_tags() -> dict[str, str]:
+    """``TIFFTAG_SOFTWARE`` and ``TIFFTAG_DATETIME`` of a raster written now."""
+    try:
+        release = version("fotoskhema")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        release = "unknown"
+    now = datetime.now(UTC).strftime("%Y:%m:%d %H:%M:%S")
+    return {"TIFFTAG_SOFTWARE": f"Fotoskhema {release}", "TIFFTAG_DATETIME": now}
 
 
 COG_BLOCK_PX = 512  # COG tile edge, px; also where the overview pyramid stops

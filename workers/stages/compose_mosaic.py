@@ -103,7 +103,12 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             write_oldest(2 * threads)
         write_oldest(0)
     progress(0.85, "writing COG with overviews")
-    translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression)
+    translate_to_cog(
+        tmp,
+        ws.mosaic_path(),
+        cfg.cog_compression,
+        tags={"TIFFTAG_IMAGEDESCRIPTION": f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"},
+    )
     tmp.unlink(missing_ok=True)
     visibility = None
     if cfg.blend == "multiband":
