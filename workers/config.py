@@ -46,7 +46,9 @@ class MosaicConfig(BaseModel):
     # planar: frames chained by homographies onto one plane (flat ground, no camera model);
     # ortho: photo-triangulation (bundle adjustment with GPS and GCPs), then every frame is
     # orthorectified onto the ground plane through its adjusted camera
-    mode: Literal["planar", "ortho"] = "planar"
+    # strip: planar, for aerial strip frames (long across track, e.g. 75000 x 1800): tie points coarse to
+    # fine on a pyramid with the spread criterion, then at native resolution read by window
+    mode: Literal["planar", "ortho", "strip"] = "planar"
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where gpu_kernels run; auto: CUDA when present
     threads: int = Field(0, ge=0, le=64)  # threads matching frame pairs on the CPU; 0: one per CPU core
     working_max_px: int = Field(2048, ge=256, le=20000)  # longest side of the working copies, px
@@ -85,6 +87,10 @@ class MosaicConfig(BaseModel):
     min_gps_frames: int = Field(3, ge=2, le=10000)  # georeference only with at least this many GPS fixes
     # accuracy of the frames' GPS positions, m; both modes' adjustments weigh the fixes by it
     gps_sigma_m: float = Field(5.0, gt=0.0, le=1000.0)
+    # -- mode "strip" only ----------------------------------------------------------------------
+    strip_reduction: int = Field(8, ge=1, le=64)  # working copies at 1/this of the frames (working_max_px unused)
+    strip_tie_points: int = Field(400, ge=20, le=20000)  # native-resolution tie points sought per pair
+    strip_min_spread: float = Field(0.5, gt=0.0, le=1.0)  # inliers must span this share of the overlap's length
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
     # intrinsics the adjustment refines
@@ -97,6 +103,14 @@ class MosaicConfig(BaseModel):
     # ortho plane height, m (the GPS altitudes' datum); None: median height of the tie points
     ground_elevation_m: float | None = Field(None, ge=-1000.0, le=10000.0)
     max_ground_range: float = Field(4.0, gt=0.0, le=100.0)  # ortho: clip frames to this many flying heights
+
+    @model_validator(mode="after")
+    def _strips_are_native(self) -> MosaicConfig:
+        # a strip's working copy is a reduced pyramid level: its mosaic is at the frames' own resolution
+        # unless asked otherwise
+        if self.mode == "strip" and "output_resolution" not in self.model_fields_set:
+            self.output_resolution = "native"
+        return self
 
     @model_validator(mode="after")
     def _native_is_planar(self) -> MosaicConfig:

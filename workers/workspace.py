@@ -448,6 +448,10 @@ class JobWorkspace:
                 r / _PAIRS,
                 *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
             ],
+            "match_strips": lambda: [
+                r / _PAIRS,
+                *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
+            ],
             "align_frames": lambda: [r / _ALIGNMENT],
             "georeference": lambda: [r / _GEOREF],
             "adjust_bundle": lambda: [r / _CAMERAS],

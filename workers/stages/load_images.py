@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from workers.config import MosaicConfig
@@ -32,13 +33,16 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         item = inputs[k]
         # a JPEG is decoded whole (the largest array of the stage, one per thread at a time); a TIFF is
         # averaged down block by block, never decoded whole
-        found = read_reduced(item["path"], cfg.working_max_px)
+        max_px = cfg.working_max_px
+        if cfg.mode == "strip":  # a pyramid level of the frame: 1/strip_reduction of its longest side
+            max_px = max(1, math.ceil(max(item["width"], item["height"]) / cfg.strip_reduction))
+        found = read_reduced(item["path"], max_px)
         if found is None:
             return RejectedFrame(k, item["name"], "could not be decoded")
         working, (width, height) = found
         ws.save_working_image(k, working)
         metadata = {name: item.get(name) for name in EXIF_FIELDS}
-        scale = min(1.0, cfg.working_max_px / max(width, height))
+        scale = min(1.0, max_px / max(width, height))
         return Frame(
             k, item["name"], item["path"], width, height, working.shape[1], working.shape[0], scale, **metadata
         )

@@ -57,7 +57,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             # multiband: the colour step across the cut lines over the same 16 px beside them (1.0: invisible)
             "seam_visibility": (ws.load_stage_report("compose_mosaic") or {}).get("seam_visibility"),
             # "working" or "native", and how many of the reference photo's px one mosaic px spans
-            "resolution": cfg.output_resolution if cfg.mode == "planar" else "working",
+            "resolution": cfg.output_resolution if cfg.mode != "ortho" else "working",
             "photo_px_per_px": 1.0 / (geo.output_scale * ref.scale),
         },
         "stage_seconds": _stage_seconds(ws, pipeline_key("mosaic", {"mode": cfg.mode})),
