@@ -78,4 +78,3 @@ def ground_colour_error_gain_free(flight, path: Path) -> float:
     inner = cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
     gain = float((rgb[inner] * expected[inner]).sum() / (rgb[inner] ** 2).sum())
     return float(np.abs(gain * rgb - expected)[inner].mean())
-
