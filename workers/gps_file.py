@@ -17,18 +17,17 @@ from __future__ import annotations
 
 import csv
 import math
-import re
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
+
+from workers.algorithms.sfm.gcp import parse_crs
 
 GPS_FILE_NAMES = ("geo.txt", "gps.csv")  # the stored names: ODM's geo.txt, the CSV
 MAX_NAME_CHARS = 255  # an image name longer than any stored one is a misread line
 
-_ODM_UTM = re.compile(r"^WGS84\s+UTM\s+(\d{1,2})\s*([NS])$", re.IGNORECASE)
 _CSV_HEADER = (
     ("name", "image", "image_name", "filename", "file"),
     ("lat", "latitude"),
@@ -143,16 +142,13 @@ def _content_lines(text: str) -> list[tuple[int, str]]:
 
 
 def _parse_crs(text: str) -> CRS:
-    """A CRS from geo.txt's first line: a PROJ string, ``EPSG:nnnn``, ``WGS84`` or ``WGS84 UTM <zone><N|S>``."""
-    found = _ODM_UTM.match(text)
-    if found:
-        zone = int(found.group(1))
-        if not 1 <= zone <= 60:
-            raise ValueError(f"UTM zone {zone} is outside 1..60")
-        return CRS.from_epsg((32600 if found.group(2).upper() == "N" else 32700) + zone)
+    """A CRS from geo.txt's first line: a PROJ string, ``EPSG:nnnn``, ``WGS84`` or ``WGS84 UTM <zone><N|S>``
+    (ODM's first line, read as the GCP file's is: :func:`workers.algorithms.sfm.gcp.parse_crs`)."""
     try:
-        crs = CRS.from_user_input(text)
-    except CRSError:
+        crs = parse_crs(text)
+    except ValueError as exc:
+        if "UTM zone" in str(exc):
+            raise
         raise ValueError(
             f"unknown coordinate system {text[:80]!r}; expected EPSG:4326, a +proj=... string or WGS84"
         ) from None
