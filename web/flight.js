@@ -339,7 +339,7 @@ function sideFileUpload(view, spec) {
 
   return h(
     "div",
-    { class: "gcp-upload" },
+    { class: "gcp-upload", "data-testid": `${key}-upload` },
     h("h3", {}, spec.title, h("span", { class: "muted small" }, "(optional)")),
     h("p", { id: `${key}-hint`, class: "muted small" }, spec.hint),
     h("label", { for: `${key}-input`, class: "btn small" }, `Upload ${spec.what}…`),

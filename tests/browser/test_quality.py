@@ -277,7 +277,8 @@ def test_flight_page_mode_and_gcps(signed_in_page, live_service, planar_job, tmp
 
     page.goto(f"{live_service.url}/#/flights/{flight_id}")
     expect(page.get_by_test_id("mode-planar")).to_be_checked()
-    expect(page.locator(".gcp-upload")).to_contain_text("ortho jobs")
+    expect(page.get_by_test_id("gcp-upload")).to_contain_text("ortho jobs")
+    expect(page.get_by_test_id("gps-upload")).to_contain_text("navigation log")
     page.get_by_test_id("gcp-input").set_input_files(str(gcps))
     expect(page.get_by_test_id("gcp-status")).to_have_text(
         "Stored gcp_list.txt: 2 points (2 with a position), 4 observations. Not in this flight: elsewhere.jpg."
@@ -286,8 +287,16 @@ def test_flight_page_mode_and_gcps(signed_in_page, live_service, planar_job, tmp
     expect(page.get_by_test_id("gcp-error")).to_contain_text("Not stored")
     expect(page.get_by_test_id("gcp-error")).to_contain_text("bad.txt: line 1: unknown coordinate system")  # detail
     expect(page.get_by_test_id("gcp-status")).to_have_text("")
+    # A GPS side file with a latitude off the globe is refused naming its line; the flight keeps its EXIF GPS.
+    bad_gps = tmp_path / "gps.csv"
+    bad_gps.write_text("name,lat,lon,alt\nframe_000.jpg,29.76,-95.36,100\nframe_001.jpg,123.0,-95.36,100\n")
+    page.get_by_test_id("gps-input").set_input_files(str(bad_gps))
+    expect(page.get_by_test_id("gps-error")).to_contain_text("Not stored")
+    expect(page.get_by_test_id("gps-error")).to_contain_text("line 3")
+    expect(page.get_by_test_id("gps-status")).to_have_text("")
     _screenshot(page, "flight_gcps")
     watch.forget("/gcps")
+    watch.forget("/gps")
 
     # The job request itself is answered here (with the existing planar job) so that no ortho job runs.
     sent: list[dict] = []

@@ -80,8 +80,11 @@ def parse_crs(text: str) -> CRS:
         return CRS.from_epsg((32600 if found.group(2).upper() == "N" else 32700) + zone)
     try:
         return CRS.from_user_input(text)
-    except CRSError as exc:
-        raise ValueError(f"unknown coordinate system {text!r}: {exc}") from None
+    except CRSError:
+        # PROJ's own message ("Internal Proj Error: proj_create: ...") says nothing a user can act on.
+        raise ValueError(
+            f"unknown coordinate system {text!r}: expected EPSG:nnnn, a +proj=... string, WGS84 or WGS84 UTM 32N"
+        ) from None
 
 
 def parse_gcp_list(text: str, frame: LocalFrame) -> list[GroundControlPoint]:
