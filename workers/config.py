@@ -38,6 +38,9 @@ Side = Annotated[int, Field(ge=1, le=100_000)]  # a photo's width or height, px
 OPTIONS = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=True)
 
 
+ORB_FEATURES = 2000  # MosaicConfig.max_features unless given, for ORB (0.6 MP registration copies)
+
+
 class MosaicConfig(BaseModel):
     """Options of a ``mosaic`` job; a request's ``options`` are merged on top of these defaults."""
 
@@ -55,12 +58,15 @@ class MosaicConfig(BaseModel):
     # planar mode: longest side the features are found at, px (about 0.6 MP per frame, as cv2.Stitcher's
     # registration_resol); their tie points are refined on the working copies. Ortho mode: working copies
     registration_max_px: int = Field(1024, ge=128, le=20000)
-    # sift: rotation- and scale-invariant (UAV frames); harris_ncc: Harris corners matched by normalised
-    # cross-correlation of windows, for strips whose frames keep their orientation and scale (aerial)
-    feature_type: Literal["sift", "harris_ncc"] = "sift"
+    # orb: binary corners matched by Hamming distance, about 10x cheaper than SIFT (cv2.Stitcher's default); the
+    # default in planar mode, where tie points are refined on the working copies, and frames it cannot connect
+    # are matched again with SIFT; sift: rotation- and scale-invariant, at working precision (the default in
+    # ortho mode); harris_ncc: Harris corners matched by normalised cross-correlation of windows, for strips
+    # whose frames keep their orientation and scale (aerial)
+    feature_type: Literal["sift", "orb", "harris_ncc"] = "sift"
     ncc_half_window: int = Field(7, ge=2, le=30)  # harris_ncc: window of 2h+1 px around each corner
     ncc_threshold: float = Field(0.85, gt=0.0, lt=1.0)  # harris_ncc: lowest correlation of a match
-    max_features: int = Field(6000, ge=100, le=100000)  # SIFT keypoints kept per frame
+    max_features: int = Field(6000, ge=100, le=100000)  # keypoints kept per frame (ORB's default: 2000)
     ratio_test: float = Field(0.75, gt=0.0, lt=1.0)  # Lowe's nearest/second-nearest distance ratio
     ransac_threshold_px: float = Field(2.0, gt=0.0, le=50.0)  # USAC inlier threshold, working px
     min_inliers: int = Field(25, ge=8, le=100000)  # a pair with fewer homography inliers is not an overlap
@@ -68,6 +74,10 @@ class MosaicConfig(BaseModel):
     max_pair_gap: int = Field(3, ge=1, le=50)  # with GPS: also try frames this far apart in order
     gps_neighbours: int = Field(6, ge=0, le=50)  # with GPS: nearest frames (by position) to try
     exhaustive_max_frames: int = Field(30, ge=2, le=200)  # no GPS: all pairs up to this many frames
+    # planar mode: pairs that descriptor matching did not accept but that the accepted ones say overlap are
+    # matched again by correlation where that alignment predicts (the cross-links between flight lines)
+    guided_matching: bool = True
+    guided_min_overlap: float = Field(0.03, gt=0.0, le=1.0)  # least predicted overlap worth it, share of a frame
     max_tie_points_per_pair: int = Field(400, ge=20, le=5000)  # spread subset used in adjustment
     perspective_damping: float = Field(1000.0, ge=0.0, le=1e6)  # adjustment: cost of perspective drift, 1/px
     gain_compensation: bool = True  # equalise brightness between overlapping frames
@@ -110,6 +120,16 @@ class MosaicConfig(BaseModel):
         # unless asked otherwise
         if self.mode == "strip" and "output_resolution" not in self.model_fields_set:
             self.output_resolution = "native"
+        return self
+
+    @model_validator(mode="after")
+    def _planar_registers_with_orb(self) -> MosaicConfig:
+        # planar mode refines tie points on the working copies, so ORB's coarser corners cost nothing there
+        # (Brighton strip: 1.15 px of the photos against SIFT's 1.77, all 6 frames, 1/10 of detecting time)
+        if self.mode == "planar" and "feature_type" not in self.model_fields_set:
+            self.feature_type = "orb"
+        if self.feature_type == "orb" and "max_features" not in self.model_fields_set:
+            self.max_features = ORB_FEATURES
         return self
 
     @model_validator(mode="after")

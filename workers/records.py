@@ -85,6 +85,9 @@ class PairRecord:
     model_kind: Literal["H", "F"]
     model: np.ndarray | None
     tie_points: int | None = None
+    # "features": descriptor matching; "guided": correlation where the other pairs' alignment predicts an
+    # overlap that descriptor matching missed (:func:`workers.algorithms.mosaic.guided_tie_points`)
+    found_by: Literal["features", "guided"] = "features"
 
     @property
     def pair(self) -> tuple[int, int]:
@@ -101,6 +104,8 @@ class PairRecord:
         }
         if self.tie_points is not None:
             data["tie_points"] = self.tie_points
+        if self.found_by != "features":
+            data["found_by"] = self.found_by
         return data
 
     @classmethod
@@ -116,6 +121,7 @@ class PairRecord:
             kind,
             None if model is None else np.array(model, dtype=np.float64),
             data.get("tie_points"),
+            "guided" if data.get("found_by") == "guided" else "features",
         )
 
 

@@ -176,6 +176,20 @@ class JobWorkspace:
         with np.load(self._features_file(index)) as data:
             return data["points"], data["descriptors"]
 
+    def save_tie_corners(self, index: int, corners: np.ndarray) -> None:
+        """(N, 2) float32 pixel (x, y) corners of a working copy where planar tie points are correlated."""
+        _save_npz(self._tie_corners_file(index), corners=corners)
+
+    def tie_corners_exist(self, index: int) -> bool:
+        return self._tie_corners_file(index).exists()
+
+    def load_tie_corners(self, index: int) -> np.ndarray:
+        with np.load(self._tie_corners_file(index)) as data:
+            return np.asarray(data["corners"])
+
+    def _tie_corners_file(self, index: int) -> Path:
+        return self.root / "features" / f"corners_{index:04d}.npz"
+
     # -- match_features -------------------------------------------------------------------------
     def _matches_file(self, pair: tuple[int, int]) -> Path:
         return self.root / "matches" / f"pair_{pair[0]:04d}_{pair[1]:04d}.npz"

@@ -8,7 +8,7 @@ from typing import Any
 import cv2
 
 from gpu_kernels.backend import resolve_device
-from workers.algorithms.mosaic import detect, detector_name, registration_copy, to_full_pixels
+from workers.algorithms.mosaic import detect, detector_name, registration_copy, tie_corners, to_full_pixels
 from workers.config import MosaicConfig
 from workers.parallel import ordered_map
 from workers.records import Frame
@@ -29,6 +29,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         )
         points, descriptors = detect(small, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
         ws.save_features(frame.index, to_full_pixels(points, factors), descriptors)
+        if cfg.mode == "planar" and cfg.guided_matching:  # where match_features correlates tie points
+            ws.save_tie_corners(frame.index, tie_corners(gray))
         return len(points)
 
     # One frame at a time: OpenCV's SIFT already uses every core (measured: 2 threads gave no gain on

@@ -131,6 +131,7 @@ def _pair_entries(pairs: list[PairRecord], frames: dict[int, Frame], align: Alig
                 "used": p.accepted and pair not in dropped,
                 "reason_unused": reason,
                 "tie_point_rms_px": rms.get(pair),
+                "found_by": p.found_by,
             }
         )
     return entries

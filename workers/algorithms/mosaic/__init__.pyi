@@ -148,8 +148,17 @@ from .pairing import (
     local_metres as local_metres,
 )
 from .ties import (
+    guided_tie_points as guided_tie_points,
+)
+from .ties import (
+    overlap_share as overlap_share,
+)
+from .ties import (
     refine_tie_points as refine_tie_points,
 )
 from .ties import (
     refit_homography as refit_homography,
+)
+from .ties import (
+    tie_corners as tie_corners,
 )

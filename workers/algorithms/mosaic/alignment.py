@@ -4,11 +4,11 @@ bundle adjustment used by Brown & Lowe 2007 and OpenCV's ``detail::BundleAdjuste
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
+
+from workers.algorithms.mosaic.plane_adjustment import PlaneProblem, levenberg_marquardt
 
 Pair = tuple[int, int]
 
@@ -125,153 +125,45 @@ def refine_homographies(
     frame -> refined (3, 3) homography, normalised so H[2, 2] = 1.
     """
     free = sorted(k for k in initial if k != root)
-    if not free or not ties:
+    obs = [(i, j, t) for (i, j), t in ties.items() if i in initial and j in initial and len(t.points_i)]
+    if not free or not obs:
         return dict(initial)
-    slot = {k: s for s, k in enumerate(free)}
+    frames = sorted(initial)  # numbered 0..F-1 in the problem
+    number = {k: f for f, k in enumerate(frames)}
+    slot = np.array([free.index(k) if k != root else -1 for k in frames], np.int64)
     norms = {k: _normaliser(*frame_sizes[k]) for k in initial}
     # frame k's pixels -> plane is A_k (I + D_k) N_k, with A_k = initial_k N_k^-1 fixed: only D_k varies
-    lift = {k: initial[k] @ np.linalg.inv(norms[k]) for k in initial}
-    obs = [
-        (i, j, _normalised_points(norms[i], t.points_i), _normalised_points(norms[j], t.points_j))
-        for (i, j), t in ties.items()
-        if i in initial and j in initial and len(t.points_i)
-    ]
-    # GPS observations, as one-sided "tie points" of the frame's centre against a fixed plane position
-    centres = {
-        k: _normalised_points(norms[k], np.array([[(w - 1) / 2, (h - 1) / 2]])) for k, (w, h) in frame_sizes.items()
-    }
-    anchored = [
-        (k, centres[k], np.asarray(xy, np.float64), 1.0 / sigma)
-        for k, (xy, sigma) in sorted((positions or {}).items())
-        if k in slot
-    ]
-    perspective = np.array([8 * s + o for s in range(len(free)) for o in (6, 7)])
-    rows, cols = _jacobian_structure(obs, slot, len(perspective), perspective, [k for k, *_ in anchored])
-    shape = (rows.max() + 1, 8 * len(free))
-
-    def correction(params: np.ndarray, k: int) -> np.ndarray:
-        if k == root:
-            return np.eye(3)
-        return np.eye(3) + np.append(params[8 * slot[k] : 8 * slot[k] + 8], 0.0).reshape(3, 3)
-
-    def residuals(params: np.ndarray) -> np.ndarray:
-        parts = [
-            _project(lift[i], correction(params, i), qi)[0] - _project(lift[j], correction(params, j), qj)[0]
-            for i, j, qi, qj in obs
-        ]
-        gps = [weight * (_project(lift[k], correction(params, k), q)[0][0] - xy) for k, q, xy, weight in anchored]
-        return np.concatenate([np.concatenate(parts).ravel(), *gps, perspective_damping * params[perspective]])
-
-    def jacobian(params: np.ndarray) -> csr_matrix:
-        data = []
-        for i, j, qi, qj in obs:
-            for k, q, sign in ((i, qi, 1.0), (j, qj, -1.0)):
-                if k in slot:
-                    data.append(sign * _projection_derivative(lift[k], correction(params, k), q).ravel())
-        for k, q, _, weight in anchored:
-            data.append(weight * _projection_derivative(lift[k], correction(params, k), q).ravel())
-        data.append(np.full(len(perspective), perspective_damping))
-        return csr_matrix((np.concatenate(data), (rows, cols)), shape=shape)
-
-    x = _levenberg_marquardt(residuals, jacobian, np.zeros(8 * len(free)), loss_scale_px)
-    refined = {k: initial[k] @ np.linalg.inv(norms[k]) @ correction(x, k) @ norms[k] for k in initial}
+    lift = np.stack([initial[k] @ np.linalg.inv(norms[k]) for k in frames])
+    counts = np.array([len(t.points_i) for _, _, t in obs])
+    # GPS observations: each frame's centre against a fixed plane position, weighted by 1 / sigma
+    gps = [(k, np.asarray(xy, np.float64), 1.0 / sigma) for k, (xy, sigma) in sorted((positions or {}).items())]
+    gps = [g for g in gps if g[0] in initial and g[0] != root]
+    centre = [_normalised_points(norms[k], np.array([[(frame_sizes[k][0] - 1) / 2, (frame_sizes[k][1] - 1) / 2]]))
+              for k, _, _ in gps]  # fmt: skip
+    problem = PlaneProblem(
+        lift=lift,
+        slot=slot,
+        q_i=np.concatenate([_normalised_points(norms[i], t.points_i) for i, _, t in obs]),
+        q_j=np.concatenate([_normalised_points(norms[j], t.points_j) for _, j, t in obs]),
+        f_i=np.repeat([number[i] for i, _, _ in obs], counts),
+        f_j=np.repeat([number[j] for _, j, _ in obs], counts),
+        starts=np.concatenate([[0], np.cumsum(counts)[:-1]]),
+        q_gps=np.concatenate(centre) if gps else np.zeros((0, 3)),
+        f_gps=np.array([number[k] for k, _, _ in gps], np.int64),
+        xy_gps=np.array([xy for _, xy, _ in gps], np.float64).reshape(-1, 2),
+        w_gps=np.array([w for _, _, w in gps], np.float64),
+        perspective_damping=perspective_damping,
+    )
+    x = levenberg_marquardt(problem.residuals, problem.normal_equations, np.zeros(8 * len(free)), loss_scale_px)
+    C = problem.corrections(x)
+    refined = {k: initial[k] @ np.linalg.inv(norms[k]) @ C[number[k]] @ norms[k] for k in initial}
     return {k: H / H[2, 2] for k, H in refined.items()}
-
-
-def _levenberg_marquardt(
-    residuals: Callable[[np.ndarray], np.ndarray],
-    jacobian: Callable[[np.ndarray], csr_matrix],
-    x0: np.ndarray,
-    f_scale: float,
-    max_iterations: int = 100,
-) -> np.ndarray:
-    """Minimise ``sum rho(r_i^2 / f^2)`` with the soft-L1 ``rho(z) = 2 (sqrt(1 + z) - 1)`` by Levenberg-Marquardt
-    on iteratively reweighted normal equations (Triggs et al. 2000, sec. 6; Marquardt's diagonal damping).
-
-    The normal matrix has 8 rows per free frame, so it is formed densely from the sparse Jacobian and solved
-    directly: a handful of iterations where an iterative trust-region solver needed hundreds of inner ones.
-    """
-
-    def cost(r: np.ndarray) -> float:
-        return float(np.sum(2.0 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)))
-
-    x, r = x0.copy(), residuals(x0)
-    current, lam = cost(r), 1e-3
-    for _ in range(max_iterations):
-        J = jacobian(x)
-        w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)  # IRLS weight of soft-L1: rho'(z)
-        JtW = J.T.multiply(w).tocsr()
-        normal = (JtW @ J).toarray()
-        gradient = JtW @ r
-        diagonal = np.maximum(np.diag(normal), 1e-12)
-        while True:
-            step = np.linalg.solve(normal + lam * np.diag(diagonal), -gradient)
-            r_new = residuals(x + step)
-            new = cost(r_new)
-            if new < current or lam > 1e12:
-                break
-            lam *= 4.0
-        if new >= current:
-            break  # no step lowers the cost: converged
-        x, r = x + step, r_new
-        done = current - new < 1e-10 * current or np.abs(step).max() < 1e-12
-        current, lam = new, max(lam / 3.0, 1e-9)
-        if done:
-            break
-    return x
 
 
 def _normalised_points(N: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(n, 3) homogeneous normalised coordinates ``N p`` of (n, 2) pixel points."""
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     return np.column_stack([pts, np.ones(len(pts))]) @ N.T
-
-
-def _project(A: np.ndarray, C: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Plane points (n, 2) of normalised points ``q`` (n, 3) through ``A C``, and their homogeneous (n, 3)."""
-    h = q @ (A @ C).T
-    return h[:, :2] / h[:, 2:3], h
-
-
-# d(C q)/d(params): parameter m of D (row-major, D[2, 2] = 0) scales component ROW[m] of q by q[COL[m]]
-_ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2])
-_COL = np.array([0, 1, 2, 0, 1, 2, 0, 1])
-
-
-def _projection_derivative(A: np.ndarray, C: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(n, 2, 8) derivative of the plane points ``A C q`` (dehomogenised) by the 8 parameters of ``C = I + D``."""
-    u, h = _project(A, C, q)
-    dh = A[None, :, _ROW] * q[:, None, _COL]  # (n, 3, 8): A @ d(Cq)/dm
-    return (dh[:, :2, :] - u[:, :, None] * dh[:, 2:3, :]) / h[:, 2, None, None]
-
-
-def _jacobian_structure(
-    obs: list[tuple[int, int, np.ndarray, np.ndarray]],
-    slot: dict[int, int],
-    n_damped: int,
-    damped: np.ndarray,
-    anchored: Sequence[int] = (),
-) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column of every non-zero of the Jacobian, in the order ``jacobian`` lists their values: tie
-    points, then the ``anchored`` frames' positions (2 rows each), then the damped parameters."""
-    rows, cols = [], []
-    r = 0
-    block = np.arange(8)
-    for i, j, qi, _ in obs:
-        n = len(qi)
-        for k in (i, j):
-            if k in slot:
-                point_rows = r + 2 * np.arange(n)[:, None, None] + np.arange(2)[None, :, None]  # (n, 2, 1)
-                rows.append(np.broadcast_to(point_rows, (n, 2, 8)).ravel())
-                cols.append(np.broadcast_to(8 * slot[k] + block, (n, 2, 8)).ravel())
-        r += 2 * n
-    for k in anchored:
-        rows.append(np.repeat(r + np.arange(2), 8))
-        cols.append(np.tile(8 * slot[k] + block, 2))
-        r += 2
-    rows.append(r + np.arange(n_damped))
-    cols.append(damped)
-    return np.concatenate(rows), np.concatenate(cols)
 
 
 def _normaliser(width: int, height: int) -> np.ndarray:

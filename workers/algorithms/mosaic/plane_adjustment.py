@@ -1,0 +1,270 @@
+"""The joint least-squares adjustment of frame -> plane homographies over every tie point at once (the
+homography variant of bundle adjustment: Brown & Lowe 2007; OpenCV ``detail::BundleAdjusterReproj``),
+vectorised over all observations: residuals, analytic derivatives and the normal equations come from a
+few array operations per iteration, whatever the number of pairs.
+
+Frame k maps its pixels to the plane by ``A_k (I + D_k) N_k``: ``N_k`` normalises its pixels (centre 0,
+half-size 1), ``A_k`` is the starting homography in those units (fixed) and ``D_k`` (eight parameters, its
+[2, 2] entry held at 0) is what the adjustment moves. The root frame has no ``D``: it defines the plane.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TypeAlias
+
+import numpy as np
+import scipy.linalg
+from scipy.sparse import csr_matrix, diags
+from scipy.sparse.linalg import spsolve
+from threadpoolctl import threadpool_limits
+
+# d(C q)/d(params): parameter m of D (row-major, D[2, 2] = 0) scales component ROW[m] of q by q[COL[m]]
+_ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2])
+_COL = np.array([0, 1, 2, 0, 1, 2, 0, 1])
+DENSE_MAX_UNKNOWNS = 2400  # normal equations up to this size (300 frames) are solved densely, beyond sparsely
+
+Normal: TypeAlias = np.ndarray | csr_matrix
+
+
+@dataclass
+class PlaneProblem:
+    """Every observation of the adjustment as flat arrays.
+
+    Frames are numbered 0..F-1 here; ``slot[f]`` is frame f's block of eight parameters, -1 for the root.
+
+    Attributes
+    ----------
+    lift : (F, 3, 3) float64, ``A_f``.
+    slot : (F,) int64.
+    q_i, q_j : (N, 3) float64 normalised homogeneous tie points of the two frames of each observation.
+    f_i, f_j : (N,) int64 their frames.
+    starts : (P,) int64 first observation of each pair (a pair's observations are contiguous).
+    q_gps : (A, 3) float64 normalised centre of each frame with a GPS position; ``f_gps`` (A,) its frame,
+        ``xy_gps`` (A, 2) the plane position and ``w_gps`` (A,) one over its sigma, 1/plane px.
+    perspective_damping : weight of each free frame's two perspective parameters against the start, 1/unit.
+    """
+
+    lift: np.ndarray
+    slot: np.ndarray
+    q_i: np.ndarray
+    q_j: np.ndarray
+    f_i: np.ndarray
+    f_j: np.ndarray
+    starts: np.ndarray
+    q_gps: np.ndarray
+    f_gps: np.ndarray
+    xy_gps: np.ndarray
+    w_gps: np.ndarray
+    perspective_damping: float
+    _dh: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
+
+    @property
+    def n_free(self) -> int:
+        return int((self.slot >= 0).sum())
+
+    def perspective(self) -> np.ndarray:
+        """(2 n_free,) int: the perspective parameters (D[2, 0], D[2, 1]) of every free frame."""
+        return (8 * np.arange(self.n_free)[:, None] + np.array([6, 7])).ravel()
+
+    def _lifted_derivatives(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`_lifted` of both sides of every tie point: they do not change while the parameters do."""
+        if self._dh is None:
+            self._dh = _lifted(self.lift[self.f_i], self.q_i), _lifted(self.lift[self.f_j], self.q_j)
+        return self._dh
+
+    def corrections(self, params: np.ndarray) -> np.ndarray:
+        """(F, 3, 3) ``I + D_f`` (the identity for the root)."""
+        d = np.zeros((len(self.slot), 9))
+        free = self.slot >= 0
+        d[free, :8] = params.reshape(-1, 8)[self.slot[free]]
+        return np.eye(3) + d.reshape(-1, 3, 3)
+
+    def residuals(self, params: np.ndarray) -> np.ndarray:
+        """Tie-point misses in the plane (x, y per point), the GPS misses over their sigmas, then the damped
+        perspective parameters: the vector whose robust norm is minimised."""
+        M = self.lift @ self.corrections(params)
+        miss = _project(M[self.f_i], self.q_i)[0] - _project(M[self.f_j], self.q_j)[0]
+        gps = self.w_gps[:, None] * (_project(M[self.f_gps], self.q_gps)[0] - self.xy_gps)
+        return np.concatenate([miss.ravel(), gps.ravel(), self.perspective_damping * params[self.perspective()]])
+
+    def normal_equations(self, params: np.ndarray, f_scale: float) -> tuple[Normal, np.ndarray]:
+        """``J^T W J`` and ``J^T W r`` at ``params``, W the soft-L1 IRLS weights ``1 / sqrt(1 + (r/f)^2)``,
+        summed observation by observation into the 8 x 8 blocks of the frames they involve (the Jacobian
+        itself is never formed)."""
+        n = 8 * self.n_free
+        C = self.corrections(params)
+        M = self.lift @ C
+        u_i, h_i = _project(M[self.f_i], self.q_i)
+        u_j, h_j = _project(M[self.f_j], self.q_j)
+        r = u_i - u_j
+        w = _irls(r, f_scale)
+        dh_i, dh_j = self._lifted_derivatives()
+        J_i = _derivative(dh_i, u_i, h_i)
+        J_j = -_derivative(dh_j, u_j, h_j)
+        blocks = _BlockSum(self.n_free)
+        pair_i, pair_j = self.slot[self.f_i[self.starts]], self.slot[self.f_j[self.starts]]
+        # pair by pair: one (2n, 8)^T (2n, 8) product per block, where per-point 8 x 8 products summed
+        # afterwards cost 4x as much
+        ends = np.append(self.starts[1:], len(r))
+        wi, wj = (J_i * w[:, :, None]).reshape(-1, 16), (J_j * w[:, :, None]).reshape(-1, 16)
+        products = np.stack(
+            [
+                _pair_products(wi[a:b].reshape(-1, 8), wj[a:b].reshape(-1, 8), J_i[a:b], J_j[a:b])
+                for a, b in zip(self.starts, ends, strict=True)
+            ]
+        )  # (P, 4, 8, 8): ii, jj, ij, ji
+        for k, (sa, sb) in enumerate(((pair_i, pair_i), (pair_j, pair_j), (pair_i, pair_j), (pair_j, pair_i))):
+            blocks.add(sa, sb, products[:, k])
+        gradient = np.zeros((self.n_free + 1, 8))  # the last row collects the root's, which is dropped
+        for s, J in ((pair_i, J_i), (pair_j, J_j)):
+            np.add.at(gradient, s, np.add.reduceat(np.einsum("nck,nc->nk", J, w * r), self.starts, axis=0))
+        if len(self.f_gps):
+            u, h = _project(M[self.f_gps], self.q_gps)
+            r_gps = self.w_gps[:, None] * (u - self.xy_gps)
+            J = self.w_gps[:, None, None] * _derivative(_lifted(self.lift[self.f_gps], self.q_gps), u, h)
+            w_gps, s = _irls(r_gps, f_scale), self.slot[self.f_gps]
+            blocks.add(s, s, _weighted_products(J, w_gps, J))
+            np.add.at(gradient, s, np.einsum("nck,nc->nk", J, w_gps * r_gps))
+        # the perspective damping: one residual per damped parameter, its derivative the damping itself
+        damped_at = self.perspective()
+        damped = self.perspective_damping * params[damped_at]
+        w_damped = _irls(damped, f_scale)
+        flat = gradient[:-1].ravel()
+        flat[damped_at] += self.perspective_damping * w_damped * damped
+        diagonal = np.zeros(n)
+        diagonal[damped_at] = self.perspective_damping**2 * w_damped
+        return blocks.matrix(diagonal), flat
+
+
+class _BlockSum:
+    """8 x 8 blocks summed by (row slot, column slot); slot -1 (the root frame) is dropped."""
+
+    def __init__(self, n_free: int) -> None:
+        self.n_free = n_free
+        self.dense = np.zeros((n_free, n_free, 8, 8)) if 8 * n_free <= DENSE_MAX_UNKNOWNS else None
+        self.keys: list[np.ndarray] = []
+        self.values: list[np.ndarray] = []
+
+    def add(self, rows: np.ndarray, cols: np.ndarray, blocks: np.ndarray) -> None:
+        keep = (rows >= 0) & (cols >= 0)
+        if self.dense is not None:
+            np.add.at(self.dense, (rows[keep], cols[keep]), blocks[keep])
+        else:
+            self.keys.append(np.column_stack([rows[keep], cols[keep]]))
+            self.values.append(blocks[keep])
+
+    def matrix(self, diagonal: np.ndarray) -> Normal:
+        n = 8 * self.n_free
+        if self.dense is not None:
+            return self.dense.transpose(0, 2, 1, 3).reshape(n, n) + np.diag(diagonal)
+        keys, values = np.concatenate(self.keys), np.concatenate(self.values)
+        grid = np.arange(8)
+        rows = (8 * keys[:, 0, None, None] + grid[None, :, None]) + np.zeros((1, 1, 8), np.int64)
+        cols = (8 * keys[:, 1, None, None] + grid[None, None, :]) + np.zeros((1, 8, 1), np.int64)
+        data = np.concatenate([values.ravel(), diagonal])
+        index = (np.concatenate([rows.ravel(), np.arange(n)]), np.concatenate([cols.ravel(), np.arange(n)]))
+        return csr_matrix((data, index), shape=(n, n))  # duplicates are summed
+
+
+def levenberg_marquardt(
+    residuals: Callable[[np.ndarray], np.ndarray],
+    normal_equations: Callable[[np.ndarray, float], tuple[Normal, np.ndarray]],
+    x0: np.ndarray,
+    f_scale: float,
+    max_iterations: int = 100,
+) -> np.ndarray:
+    """Minimise ``sum rho(r_i^2 / f^2)`` with the soft-L1 ``rho(z) = 2 (sqrt(1 + z) - 1)`` by Levenberg-Marquardt
+    on iteratively reweighted normal equations (Triggs et al. 2000, sec. 6; Marquardt's diagonal damping).
+
+    ``normal_equations(x, f)`` gives ``J^T W J`` and ``J^T W r`` at ``x``. The normal matrix has 8 rows per free
+    frame: factorised directly (Cholesky for a few hundred frames, a sparse LU beyond), a handful of
+    iterations where an iterative trust-region solver needed hundreds of inner ones.
+    """
+
+    def cost(r: np.ndarray) -> float:
+        return float(np.sum(2.0 * (np.sqrt(1.0 + (r / f_scale) ** 2) - 1.0)))
+
+    # One BLAS thread: a few hundred unknowns factorise in well under a millisecond on one, while OpenBLAS's
+    # threads spin-wait on a host whose cores are busy (measured on 2 busy cores: 30 ms against 0.6 ms).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _iterate(residuals, normal_equations, x0, f_scale, cost, max_iterations)
+
+
+def _iterate(
+    residuals: Callable[[np.ndarray], np.ndarray],
+    normal_equations: Callable[[np.ndarray, float], tuple[Normal, np.ndarray]],
+    x0: np.ndarray,
+    f_scale: float,
+    cost: Callable[[np.ndarray], float],
+    max_iterations: int,
+) -> np.ndarray:
+    x, r = x0.copy(), residuals(x0)
+    current, lam = cost(r), 1e-3
+    for _ in range(max_iterations):
+        normal, gradient = normal_equations(x, f_scale)
+        diagonal = np.maximum(normal.diagonal(), 1e-12)
+        while True:
+            step = _solve(normal, lam * diagonal, -gradient)
+            r_new = residuals(x + step)
+            new = cost(r_new)
+            if new < current or lam > 1e12:
+                break
+            lam *= 4.0
+        if new >= current:
+            break  # no step lowers the cost: converged
+        x, r = x + step, r_new
+        done = current - new < 1e-10 * current or np.abs(step).max() < 1e-12
+        current, lam = new, max(lam / 3.0, 1e-9)
+        if done:
+            break
+    return x
+
+
+def _solve(normal: Normal, damping: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``(normal + diag(damping))^-1 rhs``: Cholesky on a dense (symmetric, positive definite once damped)
+    matrix, about 7x the speed of a general solve at 30 frames; SuperLU on a sparse one."""
+    if isinstance(normal, np.ndarray):
+        damped = normal + np.diag(damping)
+        try:
+            return np.asarray(scipy.linalg.cho_solve(scipy.linalg.cho_factor(damped), rhs))
+        except np.linalg.LinAlgError:  # not positive definite in floating point: least squares instead
+            return np.linalg.lstsq(damped, rhs, rcond=None)[0]
+    return np.asarray(spsolve((normal + diags(damping)).tocsc(), rhs))
+
+
+def _pair_products(wi: np.ndarray, wj: np.ndarray, J_i: np.ndarray, J_j: np.ndarray) -> np.ndarray:
+    """(4, 8, 8) blocks ii, jj, ij, ji of one pair's normal matrix, from its weighted (2n, 8) derivatives
+    ``wi``, ``wj`` and its (n, 2, 8) derivatives."""
+    Ji, Jj = J_i.reshape(-1, 8), J_j.reshape(-1, 8)
+    return np.stack([wi.T @ Ji, wj.T @ Jj, wi.T @ Jj, wj.T @ Ji])
+
+
+def _weighted_products(Ja: np.ndarray, w: np.ndarray, Jb: np.ndarray) -> np.ndarray:
+    """(n, 8, 8) ``Ja[k]^T diag(w[k]) Jb[k]`` of (n, 2, 8) derivatives and (n, 2) weights."""
+    return np.matmul((Ja * w[:, :, None]).transpose(0, 2, 1), Jb)
+
+
+def _irls(r: np.ndarray, f_scale: float) -> np.ndarray:
+    """Soft-L1 IRLS weight ``rho'(z)`` of every residual, same shape."""
+    return 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)
+
+
+def _project(M: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plane points (n, 2) of normalised points ``q`` (n, 3) through the (n, 3, 3) ``M``, and their
+    homogeneous (n, 3)."""
+    h = np.einsum("nij,nj->ni", M, q)
+    return h[:, :2] / h[:, 2:3], h
+
+
+def _lifted(A: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(n, 3, 8) ``A d(C q)/dm`` of (n, 3, 3) ``A`` and (n, 3) ``q`` for the eight parameters m of ``C = I + D``:
+    homogeneous, and independent of ``C``."""
+    return A[:, :, _ROW] * q[:, None, _COL]
+
+
+def _derivative(dh: np.ndarray, u: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """(n, 2, 8) derivative of the plane points ``u`` = dehomogenised ``h`` (both (n, .)) by the eight
+    parameters of ``C``, from their :func:`_lifted` homogeneous derivatives ``dh``."""
+    return (dh[:, :2, :] - u[:, :, None] * dh[:, 2:3, :]) / h[:, 2, None, None]
