@@ -88,8 +88,11 @@ class MosaicConfig(BaseModel):
     # frames agree (graph cut on a low-resolution render), then Laplacian bands blended across them
     blend: Literal["feather", "multiband"] = "feather"
     blend_bands: int = Field(5, ge=1, le=8)  # multiband: pyramid levels; the coarsest blends over ~2^bands px
-    block_px: int = Field(1024, ge=256, le=8192)  # output window edge when composing, px
-    cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec for the mosaic
+    # output window edge when composing, px: 512 is the COG tile; 1024 took 25 % more peak memory, no less time
+    block_px: int = Field(512, ge=256, le=8192)
+    # COG codec for the mosaic: deflate (lossless, every reader), zstd (lossless, ~30 % faster to write, GDAL
+    # 2.3+ readers), lzw, jpeg (quality 90, lossy, ~6x smaller)
+    cog_compression: Literal["deflate", "zstd", "jpeg", "lzw"] = "deflate"
     # planar mode: the mosaic's pixels. working: those of the working copies (working_max_px on the longest
     # side, about half a 4000 px photo's); native: the photos' own, composed from the full photos (about 4x
     # the pixels and the time of composing; the alignment is the same)
@@ -289,7 +292,7 @@ class CrackSurveyConfig(BaseModel):
     match_tolerance_mm: float = Field(1.0, gt=0.0, le=100.0)  # a crack continues one of the stage before
     # if it runs within this distance of it, mm
     min_growth_mm: float = Field(2.0, ge=0.0, le=10000.0)  # smaller length gains are "unchanged", mm
-    cog_compression: Literal["deflate", "jpeg", "lzw"] = "deflate"  # COG codec of the rectified images
+    cog_compression: Literal["deflate", "zstd", "jpeg", "lzw"] = "deflate"  # COG codec of the rectified images
 
     @field_validator("stages")
     @classmethod

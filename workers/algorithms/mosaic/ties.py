@@ -224,12 +224,12 @@ def _ncc_scores(search: np.ndarray, template: np.ndarray) -> tuple[np.ndarray, n
     t = template.shape[1]
     zero_mean = template - template.mean(axis=(1, 2), keepdims=True)
     t_norm2 = (zero_mean**2).sum(axis=(1, 2))
-    # the windows' sums by box filters; their products with the zero-mean template over a strided
-    # view of every window (no copy)
+    # the windows' sums by box filters; their products with the zero-mean template by cv2.matchTemplate's
+    # plain correlation, point by point (twice the speed of one einsum over strided views of every window)
     w_sum, w_sum2 = _box_sums(search, t)
     w_var = np.maximum(w_sum2 - w_sum**2 / (t * t), 0.0)
-    windows = np.lib.stride_tricks.sliding_window_view(search, (t, t), axis=(1, 2))
-    numer = np.einsum("nyxab,nab->nyx", windows, zero_mean)
+    patches, kernels = search.astype(np.float32), zero_mean.astype(np.float32)
+    numer = np.stack([cv2.matchTemplate(patches[k], kernels[k], cv2.TM_CCORR) for k in range(len(search))])
     denom = np.sqrt(w_var * t_norm2[:, None, None])
     score = np.where(denom > 0, numer / np.where(denom > 0, denom, 1.0), 0.0)
     return score, t_norm2 < 4.0 * t * t
