@@ -35,6 +35,11 @@ class Settings(BaseSettings):
     web_dir: Path = Path(__file__).resolve().parent.parent / "web"  # the static viewer
     sse_poll_seconds: float = 0.5  # how often the event stream looks at the job record
     celery_queue: str = "cpu"  # queue the pipeline's tasks are sent to
+    # the parts of GPU stages (features, matching) go to this queue when a worker there is alive (a GPU worker:
+    # `fotoskhema worker --gpu N`); the other parts and stages to the job's queue
+    gpu_queue: str = "gpu"
+    parts_per_worker: int = Field(default=4, ge=1, le=1000)  # chunks of a stage's parts per live worker
+    part_retries: int = Field(default=2, ge=0, le=20)  # a part that crashes is tried again, alone, this often
 
     # -- Access ----------------------------------------------------------------------------------
     public_read: bool = False  # anyone may read flights, jobs, outputs and tiles without a token

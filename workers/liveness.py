@@ -175,8 +175,9 @@ class Heartbeat:
     from a daemon thread. ``lost`` turns true once the record is no longer this process's (cancelled, failed
     or sent again by the reaper); on leaving, the job is marked idle and its start count reset."""
 
-    def __init__(self, db: Database, job_id: int, interval: float) -> None:
+    def __init__(self, db: Database, job_id: int, interval: float, *, hold: bool = False) -> None:
         self.db, self.job_id, self.interval = db, job_id, interval
+        self.hold = hold  # on leaving, keep the start count: a stage's plan, whose parts are still to run
         self.me = this_process()
         self._stop, self._lost = threading.Event(), threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job_id}", daemon=True)
@@ -192,7 +193,7 @@ class Heartbeat:
     def __exit__(self, *_exc: object) -> None:
         self._stop.set()
         self._thread.join()
-        self._stamp(_idle())
+        self._stamp({**_idle(), "deliveries": Job.deliveries} if self.hold else _idle())
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval):
@@ -210,6 +211,70 @@ class Heartbeat:
         with self.db.session() as s:
             done = s.execute(query.values(**values).execution_options(synchronize_session=False))
             return bool(done.rowcount == 1)  # type: ignore[attr-defined]
+
+
+class PartBeat:
+    """While one worker does parts of a stage spread over several (``with PartBeat(...)``), stamps the job's
+    ``heartbeat_at`` every ``interval`` s, as long as the record is still chain ``token``'s and running. Many
+    processes stamp one job at once, so nothing is held: ``heartbeat_by`` stays empty. ``lost`` turns true once
+    the record is no longer the chain's or no longer running (cancelled, failed, sent again). On leaving, the
+    heartbeat is cleared: the job then waits for its next message (another part, or the stage's finish), which
+    the reaper finds in the queue; the other parts still running stamp it again within ``interval``."""
+
+    def __init__(self, db: Database, job_id: int, token: str | None, interval: float) -> None:
+        self.db, self.job_id, self.token, self.interval = db, job_id, token, interval
+        self._stop, self._lost = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"part-beat-{job_id}", daemon=True)
+
+    @property
+    def lost(self) -> bool:
+        return self._lost.is_set()
+
+    def __enter__(self) -> PartBeat:
+        if not self._stamp(utcnow()):
+            self._lost.set()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        with contextlib.suppress(SQLAlchemyError):
+            self._stamp(None)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                if not self._stamp(utcnow()):
+                    self._lost.set()
+                    return
+            except SQLAlchemyError:  # the database is away for a moment: the stale threshold allows for it
+                log.warning("job %s: part heartbeat not written", self.job_id, exc_info=True)
+
+    def _stamp(self, when: Any) -> bool:
+        where = [Job.id == self.job_id, Job.status == JobStatus.running, Job.heartbeat_by == ""]
+        if self.token is not None:
+            where.append(Job.celery_id == self.token)
+        with self.db.session() as s:
+            done = s.execute(
+                update(Job).where(*where).values(heartbeat_at=when).execution_options(synchronize_session=False)
+            )
+            return bool(done.rowcount == 1)  # type: ignore[attr-defined]
+
+
+def take_over(db: Database, job_id: int, token: str | None) -> bool:
+    """Hold job ``job_id`` for this process (its stage's finish) if it is still chain ``token``'s and running."""
+    where = [Job.id == job_id, Job.status == JobStatus.running]
+    if token is not None:
+        where.append(Job.celery_id == token)
+    with db.session() as s:
+        done = s.execute(
+            update(Job)
+            .where(*where)
+            .values(heartbeat_at=utcnow(), heartbeat_by=this_process())
+            .execution_options(synchronize_session=False)
+        )
+        return bool(done.rowcount == 1)  # type: ignore[attr-defined]
 
 
 def redis_client(url: str, timeout: float) -> redis.Redis:

@@ -4,9 +4,11 @@ calls, so threads give real parallelism without copying images between processes
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 from workers.workspace import ProgressFn
 
@@ -15,8 +17,14 @@ R = TypeVar("R")
 
 
 def thread_count(requested: int) -> int:
-    """``requested`` threads, or one per CPU core for 0."""
-    return requested if requested > 0 else max(1, os.cpu_count() or 1)
+    """``requested`` threads, or one per CPU core this process may run on for 0 (a worker pinned to some cores
+    with ``taskset`` or a container's cpuset uses those)."""
+    return requested if requested > 0 else usable_cores()
+
+
+def usable_cores() -> int:
+    affinity = getattr(os, "sched_getaffinity", None)
+    return max(1, len(affinity(0)) if affinity is not None else (os.cpu_count() or 1))
 
 
 def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress: ProgressFn, unit: str) -> list[R]:
@@ -41,3 +49,36 @@ def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress
     finally:
         pool.shutdown(wait=True, cancel_futures=True)  # work not yet started is dropped
     return results  # type: ignore[return-value]
+
+
+V = TypeVar("V")
+
+
+class RecentCache(Generic[V]):
+    """The values built for the ``size`` most recently used keys, each built once however many threads ask
+    for it at the same time (the others wait for it). A process matching a job's pairs keeps the features and
+    search index of the frames its pairs share, whichever worker it is and whichever pairs it was given."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._values: OrderedDict[Hashable, V] = OrderedDict()
+        self._building: dict[Hashable, threading.Lock] = {}
+        self._lock = threading.Lock()
+
+    def get(self, key: Hashable, build: Callable[[], V]) -> V:
+        with self._lock:
+            if key in self._values:
+                self._values.move_to_end(key)
+                return self._values[key]
+            building = self._building.setdefault(key, threading.Lock())
+        with building:
+            with self._lock:
+                if key in self._values:
+                    return self._values[key]
+            value = build()
+            with self._lock:
+                self._values[key] = value
+                self._building.pop(key, None)
+                while len(self._values) > self.size:
+                    self._values.popitem(last=False)
+            return value

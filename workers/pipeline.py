@@ -8,16 +8,19 @@ from __future__ import annotations
 
 import importlib
 import os
+import socket
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from core.kinds import JobKind
 from workers.algorithms.geometry import Camera
 from workers.config import build_config
+from workers.parallel import ordered_map, thread_count
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -25,34 +28,39 @@ from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 class StageSpec:
     name: str  # also the module under workers.stages and the Celery task name suffix
     weight: float  # share of the job's progress bar, relative to the other stages
+    # done in parts (its module has plan / run_part / finish, see run_parted), which Celery spreads over every
+    # worker of the job's queue; a stage without parts runs whole in one task
+    parted: bool = False
+    gpu: bool = False  # its parts use gpu_kernels: sent to a GPU worker's queue when one is running
 
 
 # A pipeline is a job kind, or a kind and the option that changes its stages ("mosaic.ortho").
 PIPELINES: dict[str, tuple[StageSpec, ...]] = {
     JobKind.mosaic: (
-        StageSpec("load_images", 10),
-        StageSpec("detect_features", 20),
-        StageSpec("match_features", 25),
+        StageSpec("load_images", 10, parted=True),
+        StageSpec("detect_features", 15, parted=True, gpu=True),
+        StageSpec("match_features", 15, parted=True, gpu=True),
+        StageSpec("measure_ties", 15, parted=True),
         StageSpec("align_frames", 10),
         StageSpec("georeference", 2),
-        StageSpec("compose_mosaic", 30),
+        StageSpec("compose_mosaic", 30, parted=True),
         StageSpec("write_report", 3),
     ),
     f"{JobKind.mosaic}.ortho": (
-        StageSpec("load_images", 10),
-        StageSpec("detect_features", 20),
-        StageSpec("match_features", 25),
+        StageSpec("load_images", 10, parted=True),
+        StageSpec("detect_features", 20, parted=True, gpu=True),
+        StageSpec("match_features", 25, parted=True, gpu=True),
         StageSpec("adjust_bundle", 15),
         StageSpec("orthorectify_frames", 5),
-        StageSpec("compose_mosaic", 30),
+        StageSpec("compose_mosaic", 30, parted=True),
         StageSpec("write_report", 3),
     ),
     f"{JobKind.mosaic}.strip": (
-        StageSpec("load_images", 15),
+        StageSpec("load_images", 15, parted=True),
         StageSpec("match_strips", 35),
         StageSpec("align_frames", 5),
         StageSpec("georeference", 2),
-        StageSpec("compose_mosaic", 40),
+        StageSpec("compose_mosaic", 40, parted=True),
         StageSpec("write_report", 3),
     ),
     JobKind.calibration: (StageSpec("detect_corners", 60), StageSpec("calibrate_camera", 40)),
@@ -67,6 +75,7 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("write_crack_report", 10),
     ),
 }
+PARTED_STAGES = {spec.name for specs in PIPELINES.values() for spec in specs if spec.parted}
 # The option of a kind that selects a variant pipeline, and its default.
 VARIANT_OPTIONS: dict[str, tuple[str, str]] = {
     JobKind.mosaic: ("mode", "planar"),
@@ -118,9 +127,35 @@ def overall_progress(pipeline: str, stage: str, fraction: float) -> float:
     raise ValueError(f"stage {stage!r} is not part of the {pipeline!r} pipeline")
 
 
+def stage_module(stage: str) -> ModuleType:
+    return importlib.import_module(f"workers.stages.{stage}")
+
+
 def stage_function(stage: str) -> Callable[..., dict[str, Any]]:
-    module = importlib.import_module(f"workers.stages.{stage}")
+    """What runs ``stage`` whole in this process: its module's ``run``, or for a stage in parts its plan, its
+    parts on this process's threads and its finish (:func:`run_parted`)."""
+    module = stage_module(stage)
+    if hasattr(module, "plan"):
+        return lambda ws, cfg, progress=noop_progress: run_parted(module, stage, ws, cfg, progress)
     return module.run  # type: ignore[no-any-return]
+
+
+def stage_spec(pipeline: str, stage: str) -> StageSpec:
+    return next(spec for spec in PIPELINES[pipeline] if spec.name == stage)
+
+
+def forget_parts_if_stale(ws: JobWorkspace, stage: str, rerun: bool = False) -> None:
+    """Drop the records of ``stage``'s parts when it runs again after it had finished (asked to, or because files
+    it wrote were lost since): they no longer say what is on disk. Parts of a stage that never finished (its
+    worker died, its job was sent again) are kept: those are done."""
+    if rerun or ws.load_stage_report(stage) is not None:
+        ws.remove_parts(stage)
+
+
+def stage_done(ws: JobWorkspace, stage: str) -> dict[str, Any] | None:
+    """``stage``'s saved report when it ran and its files are all there; None when it must run."""
+    done = ws.load_stage_report(stage)
+    return done if done is not None and ws.stage_outputs_present(stage) else None
 
 
 def run_stage(
@@ -128,14 +163,82 @@ def run_stage(
 ) -> dict[str, Any]:
     """Run one stage over ``ws`` unless its report says it already ran and its files are all there; save and
     return its report."""
-    if not rerun and (done := ws.load_stage_report(stage)) is not None and ws.stage_outputs_present(stage):
+    if not rerun and (done := stage_done(ws, stage)) is not None:
         return done
+    forget_parts_if_stale(ws, stage, rerun)
     cfg = build_config(job_kind(pipeline), ws.load_config())
     started = time.perf_counter()
     report = stage_function(stage)(ws, cfg, progress=progress)
     report["wall_seconds"] = round(time.perf_counter() - started, 3)
     ws.save_stage_report(stage, report)
     return report
+
+
+# A stage in parts: ``plan(ws, cfg) -> list[str]`` does what must come first (serially, idempotently) and names
+# the parts; ``run_part(ws, cfg, key) -> dict`` does one, writing its files atomically, and returns its record
+# (JSON, saved last: the mark that the part is done); ``finish(ws, cfg, records, progress=...) -> dict`` merges
+# the records, read in the plan's order, into the stage's outputs and report. The parts' results depend on their
+# keys only, so the stage's outputs are the same bytes whatever processes ran the parts and in whatever order.
+# ``part_threads(cfg)``, if the module has it, is how many parts one process runs at once (default: a core each).
+PLAN_SHARE, PARTS_SHARE = 0.05, 0.85  # of a parted stage's progress; finish has the rest
+
+
+def plan_stage(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any) -> list[str]:
+    """Plan ``stage`` and save the plan; return the keys of its parts not yet done (all, first time)."""
+    started = time.time()
+    keys = module.plan(ws, cfg)
+    ws.save_plan(stage, keys, started)
+    done = ws.parts_done(stage)
+    return [k for k in keys if k not in done]
+
+
+def run_parts(
+    module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, keys: list[str], progress: ProgressFn
+) -> None:
+    """Run the parts ``keys`` of ``stage`` on this process's threads, saving each record as it is done; a part
+    already done (by another worker, or before a restart) is skipped."""
+    done = ws.parts_done(stage)
+    threads = module.part_threads(cfg) if hasattr(module, "part_threads") else thread_count(cfg.threads)
+
+    def one(key: str) -> None:
+        if key not in done:
+            started = time.perf_counter()
+            record = module.run_part(ws, cfg, key)
+            record["_done_by"] = f"{socket.gethostname()}:{os.getpid()}"  # for the report: who did how much
+            record["_seconds"] = round(time.perf_counter() - started, 3)
+            ws.save_part(stage, key, record)
+
+    ordered_map(one, keys, threads, progress, "part")
+
+
+def finish_stage(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, progress: ProgressFn) -> dict[str, Any]:
+    """``stage``'s finish over every part's record, in the plan's order."""
+    records = {key: ws.load_part(stage, key) for key in ws.load_plan(stage)}
+    report: dict[str, Any] = module.finish(ws, cfg, records, progress=progress)
+    return report
+
+
+def run_parted(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, progress: ProgressFn) -> dict[str, Any]:
+    """A stage in parts, whole in this process: plan, the parts on threads, finish."""
+    progress(0.0, "planning")
+    todo = plan_stage(module, stage, ws, cfg)
+    run_parts(module, stage, ws, cfg, todo, lambda f, d: progress(PLAN_SHARE + PARTS_SHARE * f, d))
+    tail = 1.0 - PLAN_SHARE - PARTS_SHARE
+    report = finish_stage(module, stage, ws, cfg, lambda f, d: progress(PLAN_SHARE + PARTS_SHARE + tail * f, d))
+    report["parts"] = parts_summary(ws, stage)
+    return report
+
+
+def parts_summary(ws: JobWorkspace, stage: str) -> dict[str, Any]:
+    """How many parts the stage had, and how many each worker process did in how many seconds (``host:pid``)."""
+    by: dict[str, dict[str, float]] = {}
+    keys = ws.load_plan(stage)
+    for key in keys:
+        record = ws.load_part(stage, key)
+        entry = by.setdefault(str(record.get("_done_by", "?")), {"parts": 0, "seconds": 0.0})
+        entry["parts"] += 1
+        entry["seconds"] = round(entry["seconds"] + float(record.get("_seconds", 0.0)), 3)
+    return {"count": len(keys), "by": by}
 
 
 def process_directory(

@@ -137,6 +137,21 @@ def overview_levels(width: int, height: int, block_px: int = COG_BLOCK_PX) -> li
     return levels
 
 
+BandRead = Callable[[Window], tuple[np.ndarray, np.ndarray]]
+
+
+@contextmanager
+def open_band_reader(path: Path) -> Iterator[BandRead]:
+    """``read(window)`` -> (h, w, 3) uint8 RGB and (h, w) bool mask of a raster :func:`open_block_writer` wrote,
+    as ``write`` took them."""
+    with rasterio.open(path) as src:
+
+        def read(window: Window) -> tuple[np.ndarray, np.ndarray]:
+            return np.moveaxis(src.read(window=window), 0, 2), src.read_masks(1, window=window) > 0
+
+        yield read
+
+
 WindowRead = Callable[[int, int, int, int], tuple[np.ndarray, np.ndarray]]
 
 

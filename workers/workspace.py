@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
@@ -80,6 +81,9 @@ _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
 _FOOTPRINTS = "footprints.geojson"
 _CRACKS_GEOJSON = "cracks.geojson"
+
+
+_PART_KEY = re.compile(r"[A-Za-z0-9_]{1,64}")  # a part's key names its record file
 
 
 def _measured_cracks_name(step: int) -> str:
@@ -267,6 +271,9 @@ class JobWorkspace:
     def save_native_image(self, index: int, image: np.ndarray) -> None:
         """``(H, W, 3) uint8`` BGR: the whole photo, for a mosaic at its own resolution (scratch)."""
         _save_npy(self._native_image_file(index), image)
+
+    def native_image_exists(self, index: int) -> bool:
+        return self._native_image_file(index).exists()
 
     def load_native_image(self, index: int, mmap: bool = False) -> np.ndarray:
         return _load_npy(self._native_image_file(index), mmap)
@@ -462,6 +469,10 @@ class JobWorkspace:
                 r / _PAIRS,
                 *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
             ],
+            "measure_ties": lambda: [
+                r / _PAIRS,
+                *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
+            ],
             "match_strips": lambda: [
                 r / _PAIRS,
                 *(self._matches_file(p.pair) for p in self.load_pairs() if p.accepted),
@@ -492,6 +503,60 @@ class JobWorkspace:
         }
         listed = outputs.get(stage)
         return listed() if listed is not None else []
+
+    # -- a stage done in parts (workers.pipeline.run_parted; spread over workers by workers.tasks) ---------------
+    def _parts_dir(self, stage: str) -> Path:
+        return self.root / "parts" / stage
+
+    def save_plan(self, stage: str, keys: list[str], started: float) -> None:
+        """The keys of ``stage``'s parts, in the order its ``finish`` reads them, and when the stage started
+        (epoch seconds: its wall time runs across the processes that do its parts)."""
+        write_json(self._parts_dir(stage) / "plan.json", {"keys": keys, "started": started})
+
+    def load_plan(self, stage: str) -> list[str]:
+        return [str(k) for k in read_json(self._parts_dir(stage) / "plan.json")["keys"]]
+
+    def plan_started(self, stage: str) -> float:
+        return float(read_json(self._parts_dir(stage) / "plan.json")["started"])
+
+    def save_part_inputs(self, stage: str, inputs: dict[str, Any]) -> None:
+        """What ``stage``'s plan worked out for its parts (JSON), written before the plan."""
+        write_json(self._parts_dir(stage) / "inputs.json", inputs)
+
+    def load_part_inputs(self, stage: str) -> dict[str, Any]:
+        return dict(read_json(self._parts_dir(stage) / "inputs.json"))
+
+    def save_part_arrays(self, stage: str, **arrays: np.ndarray) -> None:
+        """Arrays ``stage``'s plan worked out for its parts (a multiband mosaic's seam labels)."""
+        _save_npz(self._parts_dir(stage) / "arrays.npz", **arrays)
+
+    def load_part_arrays(self, stage: str) -> dict[str, np.ndarray]:
+        with np.load(self._parts_dir(stage) / "arrays.npz") as data:
+            return {name: data[name] for name in data.files}
+
+    def compose_band_path(self, y: int) -> Path:
+        """A band of mosaic rows from ``y`` that one part of ``compose_mosaic`` wrote (GeoTIFF, scratch)."""
+        return self._parts_dir("compose_mosaic") / f"band_{y:07d}.tif"
+
+    def part_inputs_version(self, stage: str) -> int:
+        """Changes whenever ``save_part_inputs`` writes again (its file's modification time, ns)."""
+        return (self._parts_dir(stage) / "inputs.json").stat().st_mtime_ns
+
+    def save_part(self, stage: str, key: str, record: dict[str, Any]) -> None:
+        """One finished part's record: written last, after the part's own files, so it marks the part done."""
+        if not _PART_KEY.fullmatch(key):
+            raise ValueError(f"part key {key!r} is not a plain name")
+        write_json(self._parts_dir(stage) / f"part_{key}.json", record)
+
+    def load_part(self, stage: str, key: str) -> dict[str, Any]:
+        return dict(read_json(self._parts_dir(stage) / f"part_{key}.json"))
+
+    def parts_done(self, stage: str) -> set[str]:
+        folder = self._parts_dir(stage)
+        return {p.stem.removeprefix("part_") for p in folder.glob("part_*.json")} if folder.is_dir() else set()
+
+    def remove_parts(self, stage: str) -> None:
+        shutil.rmtree(self._parts_dir(stage), ignore_errors=True)
 
     def forget_stage_report(self, stage: str) -> None:
         """Make pipeline stage ``stage`` run again on the next delivery (its report marks it done)."""

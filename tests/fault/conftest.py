@@ -4,8 +4,10 @@ thresholds of a few seconds instead of a minute."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -57,6 +59,7 @@ class FaultStack:
     worker: subprocess.Popen[bytes] | None = None
     api: subprocess.Popen[bytes] | None = None
     flight_id: int = 0
+    extra_workers: list[subprocess.Popen[bytes]] = field(default_factory=list)
     _workers_started: int = 0
     _dead: list[subprocess.Popen[bytes]] = field(default_factory=list)
 
@@ -85,13 +88,32 @@ class FaultStack:
     def start_worker(self) -> None:
         """A new worker process (named ``faultN@host``), once it says in Redis that it is alive."""
         assert self.worker is None or self.worker.poll() is not None, "a worker already runs"
+        self.worker = self._new_worker()
+
+    def start_extra_worker(self) -> subprocess.Popen[bytes]:
+        """One more worker beside the first (scale-out tests); stop it with ``stop_extra_workers``."""
+        worker = self._new_worker()
+        self.extra_workers.append(worker)
+        return worker
+
+    def stop_extra_workers(self) -> None:
+        while self.extra_workers:
+            worker = self.extra_workers.pop()
+            for pid in _children(worker.pid):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            worker.kill()
+            worker.wait()
+
+    def _new_worker(self) -> subprocess.Popen[bytes]:
         self._workers_started += 1
         name = f"fault{self._workers_started}"
         cmd = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "--include"]
         cmd += ["tests.fault.worker_faults", "-Q", "cpu,gpu", "--concurrency", "1", "-n", f"{name}@%h"]
         cmd += ["--loglevel", "INFO", "--without-gossip", "--without-mingle"]
-        self.worker = _spawn(cmd, self.env, self.logs / f"worker-{name}.log")
+        worker = _spawn(cmd, self.env, self.logs / f"worker-{name}.log")
         wait_for(lambda: self._beacon_of(name), 60, f"worker {name} ready (log {self.logs})")
+        return worker
 
     def kill_worker(self) -> list[int]:
         """SIGKILL the worker's main process only, as the OOM killer or ``kill -9`` would; returns the pids
@@ -111,8 +133,9 @@ class FaultStack:
     def ensure_up(self) -> None:
         """Every part running, no fault switched on: what each test starts from."""
         for path in self.faults.glob("*"):
-            if path.name.startswith(("hold-", "crash-")):
+            if path.name.startswith(("hold-", "crash-", "fail-once-")):
                 path.unlink()
+        self.stop_extra_workers()
         if self.redis_server is None or self.redis_server.poll() is not None:
             self.start_redis()
         if self.worker is None or self.worker.poll() is not None:
@@ -130,11 +153,15 @@ class FaultStack:
     def client(self, timeout: float = 30.0) -> httpx.Client:
         return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {self.token}"}, timeout=timeout)
 
-    def new_job(self) -> int:
+    def new_job(self, flight_id: int = 0, **options: Any) -> int:
+        body = {"flight_id": flight_id or self.flight_id, "options": {"working_max_px": 480, **options}}
         with self.client() as http:
-            response = http.post("/api/jobs", json={"flight_id": self.flight_id, "options": {"working_max_px": 480}})
+            response = http.post("/api/jobs", json=body)
         assert response.status_code == 202, response.text
         return int(response.json()["id"])
+
+    def job_folder(self, job_id: int) -> Path:
+        return self.root / "data" / "jobs" / str(job_id)
 
     def job(self, job_id: int) -> dict[str, Any]:
         with self.client() as http:
@@ -230,6 +257,7 @@ def fault_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[FaultStack
     finally:
         for path in stack.faults.glob("hold-*"):
             path.unlink()
+        stack.stop_extra_workers()
         stop([stack.worker, stack.api, stack.redis_server])
 
 

@@ -61,17 +61,33 @@ def test_a_stage_message_queued_survives_a_redis_restart(stack: FaultStack) -> N
 
 
 def test_redis_down_across_a_stage_boundary_and_the_job_still_ends(stack: FaultStack) -> None:
-    (stack.faults / f"hold-{STAGE}").touch()
+    whole = "align_frames"  # a stage done whole in one task: the next stage is sent as it ends
+    (stack.faults / f"hold-{whole}").touch()
     job_id = stack.new_job()
-    wait_for(stack.held(job_id, STAGE).exists, 60, f"{STAGE} of job {job_id} running")
+    wait_for(stack.held(job_id, whole).exists, 60, f"{whole} of job {job_id} running")
     stack.kill_redis()
-    (stack.faults / f"hold-{STAGE}").unlink()  # the stage ends while Redis is down: its next cannot be sent
-    wait_for(lambda: STAGE in stack.job(job_id)["timings"], 30, f"{STAGE} finished")
+    (stack.faults / f"hold-{whole}").unlink()  # the stage ends while Redis is down: its next cannot be sent
+    wait_for(lambda: whole in stack.job(job_id)["timings"], 30, f"{whole} finished")
     wait_for(lambda: stack.waiting_for(job_id) > STALE_S, 30, "the job waiting for its next stage for a while")
     stack.start_redis()
     job = stack.wait_for_end(job_id, 60)
     assert job["status"] == "succeeded", job["error"]
-    assert stack.starts(job_id, "match_features") == 1
+    assert stack.starts(job_id, "georeference") == 1
+
+
+def test_redis_down_between_a_plan_and_its_parts_and_the_job_still_ends(stack: FaultStack) -> None:
+    """The plan of a stage in parts ends while Redis is down: its parts cannot be sent; the reaper sends the job
+    again from that stage once Redis is back, and the plan runs again."""
+    (stack.faults / f"hold-{STAGE}").touch()
+    job_id = stack.new_job()
+    wait_for(stack.held(job_id, STAGE).exists, 60, f"{STAGE} of job {job_id} planning")
+    stack.kill_redis()
+    (stack.faults / f"hold-{STAGE}").unlink()
+    wait_for(lambda: stack.waiting_for(job_id) > STALE_S, 30, "the job waiting for its parts for a while")
+    stack.start_redis()
+    job = stack.wait_for_end(job_id, 60)
+    assert job["status"] == "succeeded", job["error"]
+    assert stack.starts(job_id, STAGE) == 2 and stack.starts(job_id, "load_images") == 1
 
 
 def test_health_says_503_while_the_worker_or_redis_is_down(stack: FaultStack) -> None:

@@ -7,41 +7,68 @@ Files in ``$FOTOSKHEMA_FAULT_DIR`` switch them on, by stage name, for whatever j
   it writes ``held-<job>-<stage>`` when it begins to wait, so a test knows the stage is mid-run.
 - ``crash-<stage>``: the process running the stage ends at once (``os._exit``), every time, as an
   out-of-memory kill would.
+- ``hold-part-<stage>``, ``crash-part-<stage>``: the same in each part of a stage done in parts; a held part
+  writes ``held-part-<job>-<stage>-<pid>``.
+- ``fail-once-part-<stage>``: the first part of the stage to start raises an error (a crash that is not the
+  data's: a worker's disk or network for a moment); the parts after it run as usual.
 
-Each start of a stage appends a line to ``started-<job>-<stage>``.
+Each start of a stage (its whole run, or the plan of a stage in parts) appends a line to
+``started-<job>-<stage>``; each start of a part, to ``started-part-<job>-<stage>``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+import types
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from workers import pipeline
 
-_stage_function = pipeline.stage_function
+_stage_module = pipeline.stage_module
 
 
-def _with_faults(stage: str) -> Callable[..., dict[str, Any]]:
-    run = _stage_function(stage)
+def _fault(kind: str, stage: str, ws: Any) -> None:
+    """Log a start of ``kind`` ("" for a stage, "part-" for a part), then crash or hold if switched on."""
+    folder, job = Path(os.environ["FOTOSKHEMA_FAULT_DIR"]), ws.root.name
+    with (folder / f"started-{kind}{job}-{stage}").open("a") as log:
+        log.write(f"{os.getpid()}\n")
+    if (folder / f"crash-{kind}{stage}").exists():
+        os._exit(70)
+    if kind and (folder / f"fail-once-{kind}{stage}").exists():
+        with contextlib.suppress(FileExistsError):
+            (folder / f"failed-once-{job}-{stage}").open("x").close()  # the first part only
+            raise RuntimeError("a part's worker lost its scratch disk for a moment")
+    hold = folder / f"hold-{kind}{stage}"
+    if hold.exists():
+        marker = f"held-{kind}{job}-{stage}" + (f"-{os.getpid()}" if kind else "")
+        (folder / marker).write_text(str(os.getpid()))
+        while hold.exists():
+            time.sleep(0.05)
 
-    def run_with_faults(ws: Any, cfg: Any, **kwargs: Any) -> dict[str, Any]:
-        folder, job = Path(os.environ["FOTOSKHEMA_FAULT_DIR"]), ws.root.name
-        with (folder / f"started-{job}-{stage}").open("a") as log:
-            log.write(f"{os.getpid()}\n")
-        if (folder / f"crash-{stage}").exists():
-            os._exit(70)
-        hold = folder / f"hold-{stage}"
-        if hold.exists():
-            (folder / f"held-{job}-{stage}").write_text(str(os.getpid()))
-            while hold.exists():
-                time.sleep(0.05)
-        return run(ws, cfg, **kwargs)
 
-    return run_with_faults
+def _wrapped(stage: str, fn: Callable[..., Any], kind: str) -> Callable[..., Any]:
+    def with_faults(ws: Any, cfg: Any, *args: Any, **kwargs: Any) -> Any:
+        _fault(kind, stage, ws)
+        return fn(ws, cfg, *args, **kwargs)
+
+    return with_faults
 
 
-# run_stage looks stage_function up in workers.pipeline at each call, so this wraps every stage it runs.
-pipeline.stage_function = _with_faults
+def _with_faults(stage: str) -> types.ModuleType:
+    module = _stage_module(stage)
+    faulty = types.ModuleType(module.__name__)
+    faulty.__dict__.update(module.__dict__)
+    if hasattr(module, "plan"):
+        faulty.plan = _wrapped(stage, module.plan, "")
+        faulty.run_part = _wrapped(stage, module.run_part, "part-")
+    else:
+        faulty.run = _wrapped(stage, module.run, "")
+    return faulty
+
+
+# the stage runners look stage_module up in workers.pipeline at each call, so this wraps every stage they run
+pipeline.stage_module = _with_faults

@@ -10,7 +10,6 @@ from tests.scenes import make_texture
 from workers.algorithms.mosaic import (
     FlannIndex,
     OverlapGuide,
-    PairIndices,
     apply_homography,
     match_index,
     match_ratio,
@@ -137,16 +136,32 @@ def test_refit_homography_recovers_the_model_from_refined_points() -> None:
     assert np.abs(apply_homography(H, corners) - apply_homography(PLANTED, corners)).max() < 0.1
 
 
-def test_pair_indices_are_built_once_and_dropped_after_the_last_pair() -> None:
-    rng = np.random.default_rng(2)
-    descs = {k: rng.random((60, 128)).astype(np.float32) for k in range(4)}
-    pairs = [(0, 1), (0, 2), (1, 2), (2, 3)]
-    indices = PairIndices(descs, pairs, "sift", "cpu")
-    first = indices.get(0)
-    assert isinstance(first, FlannIndex) and indices.get(0) is first  # built once, shared
-    indices.release((0, 1))
-    assert indices.get(0) is first  # (0, 2) still to come
-    indices.get(2)
-    indices.release((0, 2))
-    assert 0 not in indices._built and 2 in indices._built
-    assert PairIndices(descs, pairs, "harris_ncc", "cpu").get(1) is None
+def test_recent_cache_builds_each_value_once_and_keeps_the_most_recent() -> None:
+    import threading
+
+    from workers.parallel import RecentCache
+
+    builds: list[int] = []
+    gate = threading.Event()
+
+    def build(k: int) -> FlannIndex | None:
+        gate.wait(5)
+        builds.append(k)
+        return match_index(np.random.default_rng(k).random((60, 128)).astype(np.float32), "sift", "cpu")
+
+    cache: RecentCache[FlannIndex | None] = RecentCache(2)
+    got: list[FlannIndex | None] = []
+    threads = [threading.Thread(target=lambda: got.append(cache.get(0, lambda: build(0)))) for _ in range(4)]
+    for t in threads:
+        t.start()
+    gate.set()
+    for t in threads:
+        t.join()
+    assert builds == [0] and all(g is got[0] for g in got) and isinstance(got[0], FlannIndex)  # once, shared
+    cache.get(1, lambda: build(1))
+    cache.get(0, lambda: build(0))  # used again: now the most recent
+    cache.get(2, lambda: build(2))  # evicts 1, the least recent
+    cache.get(0, lambda: build(0))
+    cache.get(1, lambda: build(1))
+    assert builds == [0, 1, 2, 1]
+    assert match_index(np.zeros((5, 32), np.uint8), "harris_ncc", "cpu") is None

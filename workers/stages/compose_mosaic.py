@@ -1,11 +1,16 @@
-"""Stage ``compose_mosaic``: warp, gain-compensate and feather-blend the frames into a COG, one window at a
-time (:mod:`workers.algorithms.mosaic.compose`)."""
+"""Stage ``compose_mosaic``: warp, gain-compensate and blend the frames into a COG, window by window
+(:mod:`workers.algorithms.mosaic.compose`), a part per band of windows.
+
+The plan measures what every part shares: the gains and the coverage from a low-resolution render, and for a
+multiband mosaic the seams. Each part composes one band of rows (``block_px`` high) into a GeoTIFF of its own;
+the finish copies the bands into the scratch GeoTIFF, builds the overviews and writes the COG. Memory depends
+on the band's width and the frames' size, never on the size of the mosaic.
+"""
 
 from __future__ import annotations
 
-from collections import deque
+import math
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
@@ -25,50 +30,56 @@ from workers.algorithms.mosaic import (
     seam_visibility,
 )
 from workers.config import MosaicConfig
-from workers.parallel import ordered_map, thread_count
+from workers.parallel import RecentCache, ordered_map, thread_count
 from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
-from workers.raster_io import open_block_writer, open_window_reader, translate_to_cog
+from workers.raster_io import open_band_reader, open_block_writer, open_window_reader, translate_to_cog
 from workers.records import Coverage, Frame
-from workers.workspace import JobWorkspace, ProgressFn, noop_progress
+from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress
+
+STAGE = "compose_mosaic"
+_PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes from (native resolution)
 
 
-def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
-    """Write ``mosaic.tif`` (COG, RGB + mask) and ``footprints.geojson``-ready ``coverage.json``."""
+def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
+    """Gains, coverage and (multiband) seams, saved for the parts; a part per band of ``block_px`` rows."""
     geo = ws.load_georef()
-    frames = ws.load_composed_frames()
-    homs = ws.load_alignment().homographies
-    # output pixel -> frame pixel, for every frame
-    to_frame = {k: np.linalg.inv(H) @ geo.output_to_plane for k, H in homs.items()}
-    sizes = {k: (frames[k].width, frames[k].height) for k in to_frame}
-    boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
-    progress(0.0, "gain compensation")
+    sizes, to_frame = _working_geometry(ws)
     # gains and the outline from a 768 px render: the working copies are plenty for it, at any output scale
     working_of = partial(ws.load_compose_image, mmap=True)
     gains, outline, area, vignette = gains_and_coverage(
         working_of, sizes, to_frame, geo.width, geo.height, cfg.gain_compensation, cfg.vignetting_correction
     )
     ws.save_coverage(Coverage(outline, area))
-    image_of: Callable[[int], Any] = working_of
-    working_sizes, working_to_frame = sizes, to_frame
-    if cfg.output_resolution == "native":
-        progress(0.05, "decoding the photos at full size")
-        photos = _open_photos(ws, [frames[k] for k in sorted(to_frame)], cfg.threads)
-        to_frame = {k: _working_to_photo(frames[k]) @ M for k, M in to_frame.items()}
-        sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
-        boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
-        image_of = photos.__getitem__
-    blocks = [(x, y) for y in range(0, geo.height, cfg.block_px) for x in range(0, geo.width, cfg.block_px)]
-    tmp = ws.mosaic_scratch_path()
-    transform = geo.transform if geo.georeferenced else None
-    windows = [(x, y, min(cfg.block_px, geo.width - x), min(cfg.block_px, geo.height - y)) for x, y in blocks]
-
+    shared: dict[str, Any] = {"gains": {str(k): g.tolist() for k, g in gains.items()}, "vignette": list(vignette)}
     if cfg.blend == "multiband":
-        progress(0.08, "cutting seams")
-        labels, label_scale = seam_labels(working_of, working_sizes, working_to_frame, gains, geo.width, geo.height)
+        labels, label_scale = seam_labels(working_of, sizes, to_frame, gains, geo.width, geo.height)
         ws.save_seams(owned_regions(labels, label_scale))
+        ws.save_part_arrays(STAGE, labels=labels)
+        shared["label_scale"] = label_scale
     else:
         ws.remove_seams()  # a feathered mosaic (again): no cut lines
+    ws.save_part_inputs(STAGE, shared)
+    return [f"{y:07d}" for y in range(0, geo.height, cfg.block_px)]
+
+
+def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
+    """Compose the band of rows from ``key`` into its GeoTIFF (``compose_band_path``)."""
+    y = int(key)
+    geo = ws.load_georef()
+    shared = ws.load_part_inputs(STAGE)
+    gains = {int(k): np.array(g, np.float64) for k, g in shared["gains"].items()}
+    vignette = (float(shared["vignette"][0]), float(shared["vignette"][1]))
+    sizes, to_frame = _working_geometry(ws)
+    image_of: Callable[[int], Any] = partial(ws.load_compose_image, mmap=True)
+    if cfg.output_resolution == "native":
+        frames = ws.load_composed_frames()
+        to_frame = {k: _working_to_photo(frames[k]) @ M for k, M in to_frame.items()}
+        sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
+        image_of = partial(_photo, ws, frames)
+    boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
+    if cfg.blend == "multiband":
+        labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
 
     def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
         if cfg.blend == "multiband":
@@ -77,57 +88,81 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             )
         return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette)
 
-    threads = thread_count(cfg.threads)
-    # uncompressed is fastest, but past SCRATCH_RAW_MAX_PX the scratch would take 4 B/px of disk
-    scratch_codec = None if geo.width * geo.height <= SCRATCH_RAW_MAX_PX else "deflate"
+    height = min(cfg.block_px, geo.height - y)
+    windows = [(x, y, min(cfg.block_px, geo.width - x), height) for x in range(0, geo.width, cfg.block_px)]
+    # the bands a process composes at once share its cores; a mosaic of fewer bands than cores (a wide strip)
+    # composes the windows of each band on the cores left
+    bands = math.ceil(geo.height / cfg.block_px)
+    inner = max(1, thread_count(cfg.threads) // max(1, min(bands, thread_count(cfg.threads))))
     with (
-        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=scratch_codec) as write,
-        ThreadPoolExecutor(max_workers=threads) as pool,
+        atomic_path(ws.compose_band_path(y)) as tmp,
+        open_block_writer(tmp, geo.width, height, None, None, compress=_codec(geo)) as write,
     ):
-        # Windows are composed on every core (OpenCV and NumPy release the GIL) and written in order by
-        # this thread while the next ones are composed; at most 2 per thread wait, so memory holds a few
-        # windows, never the whole mosaic.
-        pending: deque[tuple[tuple[int, int, int, int], Future[tuple[np.ndarray, np.ndarray]]]] = deque()
-        written = 0
+        for (x, _, w, h), pixels in zip(
+            windows, ordered_map(one, windows, inner, noop_progress, "window"), strict=True
+        ):
+            write(Window(x, 0, w, h), *pixels)
+    return {"rows": height}
 
-        def write_oldest(keep: int) -> None:
-            nonlocal written
-            while len(pending) > keep:
-                (x, y, w, h), future = pending.popleft()
-                write(Window(x, y, w, h), *future.result())
-                written += 1
-                progress(0.1 + 0.75 * written / len(windows), f"block {written}/{len(windows)}")
 
-        for window in windows:
-            pending.append((window, pool.submit(one, window)))
-            write_oldest(2 * threads)
-        write_oldest(0)
-    progress(0.85, "writing COG with overviews")
-    translate_to_cog(
-        tmp,
-        ws.mosaic_path(),
-        cfg.cog_compression,
-        tags={"TIFFTAG_IMAGEDESCRIPTION": f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"},
-    )
+def finish(
+    ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
+) -> dict[str, Any]:
+    """Copy the bands into the scratch GeoTIFF, then write ``mosaic.tif`` (COG, RGB + mask)."""
+    geo = ws.load_georef()
+    tmp = ws.mosaic_scratch_path()
+    transform = geo.transform if geo.georeferenced else None
+    with open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write:
+        for n, key in enumerate(records):
+            y = int(key)
+            with open_band_reader(ws.compose_band_path(y)) as read:
+                for x in range(0, geo.width, cfg.block_px):
+                    width = min(cfg.block_px, geo.width - x)
+                    height = int(records[key]["rows"])
+                    write(Window(x, y, width, height), *read(Window(x, 0, width, height)))
+            progress(0.5 * (n + 1) / len(records), f"band {n + 1}/{len(records)}")
+    progress(0.5, "writing COG with overviews")
+    description = f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"
+    translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression, tags={"TIFFTAG_IMAGEDESCRIPTION": description})
     tmp.unlink(missing_ok=True)
+    shared = ws.load_part_inputs(STAGE)
     visibility = None
     if cfg.blend == "multiband":
         progress(0.95, "measuring the seams")
-        with open_window_reader(ws.mosaic_path()) as read:
-            visibility = seam_visibility(read, *seam_points(labels, label_scale))
+        labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
+        with open_window_reader(ws.mosaic_path()) as read_window:
+            visibility = seam_visibility(read_window, *seam_points(labels, label_scale))
     ws.remove_native_images()
-    progress(1.0, f"block {len(blocks)}/{len(blocks)}")
+    for key in records:
+        ws.compose_band_path(int(key)).unlink(missing_ok=True)
+    frames = ws.load_composed_frames()
+    vignette = shared["vignette"]
+    progress(1.0, f"band {len(records)}/{len(records)}")
     return {
         "width": geo.width,
         "height": geo.height,
-        "blocks": len(blocks),
+        "blocks": math.ceil(geo.width / cfg.block_px) * len(records),
         "output_resolution": cfg.output_resolution,
         "blend": cfg.blend,
         "vignetting": {"c1": vignette[0], "c2": vignette[1]} if cfg.vignetting_correction else None,
         # multiband: colour step across the cut lines / the same 16 px beside them (1.0: invisible)
         "seam_visibility": visibility,
-        "gains": {frames[k].name: g for k, g in gains.items()},
+        "gains": {frames[int(k)].name: g for k, g in shared["gains"].items()},
     }
+
+
+def _working_geometry(ws: JobWorkspace) -> tuple[dict[int, tuple[int, int]], dict[int, np.ndarray]]:
+    """Each composed frame's working (width, height) and output pixel -> working pixel map."""
+    geo = ws.load_georef()
+    frames = ws.load_composed_frames()
+    homs = ws.load_alignment().homographies
+    to_frame = {k: np.linalg.inv(H) @ geo.output_to_plane for k, H in homs.items()}
+    return {k: (frames[k].width, frames[k].height) for k in to_frame}, to_frame
+
+
+def _codec(geo: Any) -> str | None:
+    """Scratch rasters uncompressed (fastest), but deflated past SCRATCH_RAW_MAX_PX, where they would take 4 B/px."""
+    return None if geo.width * geo.height <= SCRATCH_RAW_MAX_PX else "deflate"
 
 
 def _working_to_photo(frame: Frame) -> np.ndarray:
@@ -136,22 +171,23 @@ def _working_to_photo(frame: Frame) -> np.ndarray:
     return np.array([[1 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _open_photos(ws: JobWorkspace, used: list[Frame], threads: int) -> dict[int, Any]:
-    """Each used photo at full size, as something windows can be sliced from: a TIFF read by window where
-    it lies (never decoded whole), any other photo decoded once into the workspace's scratch (``native/``)
-    and memory-mapped."""
+def _photo(ws: JobWorkspace, frames: dict[int, Frame], k: int) -> Any:
+    """Photo ``k`` at full size, as something windows can be sliced from: a TIFF read by window where it lies
+    (never decoded whole), any other photo decoded once into the job's scratch (``native/``, shared by every
+    worker; written atomically, so two workers decoding it at once both leave a whole file) and memory-mapped."""
 
-    def one(frame: Frame) -> Any:
+    def open_photo() -> Any:
+        frame = frames[k]
         if reads_by_window(frame.path):
             reader = WindowReader(frame.path)
             if reader.shape[:2] != (frame.orig_height, frame.orig_width):
                 raise PipelineError(f"{frame.name} changed size since it was loaded")
             return reader
-        image = cv2.imread(frame.path, cv2.IMREAD_COLOR)  # as load_images read it (EXIF orientation applied)
-        if image is None or image.shape[:2] != (frame.orig_height, frame.orig_width):
-            raise PipelineError(f"{frame.name} could not be decoded again at its full size")
-        ws.save_native_image(frame.index, image)
-        return ws.load_native_image(frame.index, mmap=True)
+        if not ws.native_image_exists(k):
+            image = cv2.imread(frame.path, cv2.IMREAD_COLOR)  # as load_images read it (EXIF orientation applied)
+            if image is None or image.shape[:2] != (frame.orig_height, frame.orig_width):
+                raise PipelineError(f"{frame.name} could not be decoded again at its full size")
+            ws.save_native_image(k, image)
+        return ws.load_native_image(k, mmap=True)
 
-    opened = ordered_map(one, used, thread_count(threads), noop_progress, "photo")
-    return {frame.index: photo for frame, photo in zip(used, opened, strict=True)}
+    return _PHOTOS.get((str(ws.root.resolve()), k), open_photo)

@@ -10,33 +10,46 @@ import cv2
 from gpu_kernels.backend import resolve_device
 from workers.algorithms.mosaic import detect, detector_name, registration_copy, tie_corners, to_full_pixels
 from workers.config import MosaicConfig
-from workers.parallel import ordered_map, thread_count
-from workers.records import Frame
+from workers.parallel import thread_count
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
-def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
-    """Write ``features/frame_NNNN.npz`` (points, descriptors) for every frame of ``frames.json``."""
-    frames = ws.load_frames()
+def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
+    """A part per frame of ``frames.json``."""
+    return [f"{f.index:05d}" for f in ws.load_frames()]
+
+
+def part_threads(cfg: MosaicConfig) -> int:
+    """SIFT one frame at a time: OpenCV's already uses every core (measured: 2 threads gave no gain on 2 cores
+    and doubled peak memory), and a GPU is one shared device; ORB and the corners run on one core each."""
+    return thread_count(cfg.threads) if cfg.feature_type == "orb" else 1
+
+
+def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
+    """Write ``features/frame_NNNN.npz`` (points, descriptors) of frame ``key`` and, in planar mode, its tie
+    corners; the record is how many keypoints and on what they were found."""
+    k = int(key)
     device = resolve_device(cfg.device)
+    gray = cv2.cvtColor(ws.load_working_image(k), cv2.COLOR_BGR2GRAY)
+    # ortho: the bundle adjustment triangulates relief and needs tie points at working precision, which
+    # the homography-guided refinement of planar mode cannot give it
+    small, factors = registration_copy(gray, cfg.registration_max_px) if cfg.mode == "planar" else (gray, (1.0, 1.0))
+    points, descriptors = detect(small, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
+    ws.save_features(k, to_full_pixels(points, factors), descriptors)
+    if cfg.mode == "planar" and cfg.guided_matching:
+        # where measure_ties correlates tie points: corners of the registration copy are as good a place as
+        # the working copy's (the correlation, not the corner, gives the position), at 1/4 the cost
+        ws.save_tie_corners(k, to_full_pixels(tie_corners(small), factors))
+    return {"keypoints": len(points), "device": device}
 
-    def one(frame: Frame) -> int:
-        gray = cv2.cvtColor(ws.load_working_image(frame.index), cv2.COLOR_BGR2GRAY)
-        # ortho: the bundle adjustment triangulates relief and needs tie points at working precision, which
-        # the homography-guided refinement of planar mode cannot give it
-        small, factors = (
-            registration_copy(gray, cfg.registration_max_px) if cfg.mode == "planar" else (gray, (1.0, 1.0))
-        )
-        points, descriptors = detect(small, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
-        ws.save_features(frame.index, to_full_pixels(points, factors), descriptors)
-        if cfg.mode == "planar" and cfg.guided_matching:
-            # where match_features correlates tie points: corners of the registration copy are as good a
-            # place as the working copy's (the correlation, not the corner, gives the position), at 1/4 the cost
-            ws.save_tie_corners(frame.index, to_full_pixels(tie_corners(small), factors))
-        return len(points)
 
-    # SIFT one frame at a time: OpenCV's already uses every core (measured: 2 threads gave no gain on 2 cores
-    # and doubled peak memory), and a GPU is one shared device; ORB and the corners run on one core each
-    threads = thread_count(cfg.threads) if cfg.feature_type == "orb" else 1
-    counts = dict(zip([f.name for f in frames], ordered_map(one, frames, threads, progress, "frame"), strict=True))
-    return {"device": device, "detector": detector_name(cfg.feature_type, device), "keypoints": counts}
+def finish(
+    ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
+) -> dict[str, Any]:
+    frames = ws.load_frames()
+    devices = sorted({r["device"] for r in records.values()})
+    return {
+        "device": ",".join(devices),
+        "detector": ",".join(detector_name(cfg.feature_type, d) for d in devices),
+        "keypoints": {f.name: records[f"{f.index:05d}"]["keypoints"] for f in frames},
+    }

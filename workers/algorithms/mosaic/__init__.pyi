@@ -55,7 +55,7 @@ from .features import (
     OverlapGuide as OverlapGuide,
 )
 from .features import (
-    PairIndices as PairIndices,
+    SearchIndex as SearchIndex,
 )
 from .features import (
     detect as detect,
@@ -155,6 +155,9 @@ from .ties import (
 )
 from .ties import (
     refine_tie_points as refine_tie_points,
+)
+from .ties import (
+    refined_pair_ties as refined_pair_ties,
 )
 from .ties import (
     refit_homography as refit_homography,

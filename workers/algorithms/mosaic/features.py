@@ -7,8 +7,6 @@ Arrays in and out are host NumPy arrays; data moves to the device and back insid
 
 from __future__ import annotations
 
-import threading
-from collections import Counter
 from typing import Literal, NamedTuple
 
 import cv2
@@ -123,39 +121,6 @@ def match_index(desc: np.ndarray, feature_type: FeatureType, device: Device) -> 
     if not uses_opencv(feature_type, device) or len(desc) < 2:
         return None
     return HammingIndex(desc) if feature_type == "orb" else FlannIndex(desc)
-
-
-class PairIndices:
-    """Each frame's :func:`match_index` for matching ``pairs`` on several threads: built on first use, once,
-    and dropped after the frame's last pair (a FLANN index holds a copy of its 6000 x 128 descriptors, ~4.5
-    MB, so holding all of them grows with the flight; this holds the frames whose pairs are under way)."""
-
-    def __init__(
-        self,
-        descriptors: dict[int, np.ndarray],
-        pairs: list[tuple[int, int]],
-        feature_type: FeatureType,
-        device: Device,
-    ) -> None:
-        self._descriptors, self._kind = descriptors, (feature_type, device)
-        self._left = Counter(k for pair in pairs for k in pair)
-        self._built: dict[int, SearchIndex | None] = {}
-        self._locks = {k: threading.Lock() for k in self._left}  # one build per frame, others wait for it
-        self._count_lock = threading.Lock()
-
-    def get(self, frame: int) -> SearchIndex | None:
-        with self._locks[frame]:
-            if frame not in self._built:
-                self._built[frame] = match_index(self._descriptors[frame], *self._kind)
-            return self._built[frame]
-
-    def release(self, pair: tuple[int, int]) -> None:
-        """``pair`` is matched: drop the index of a frame that has no pair left."""
-        with self._count_lock:
-            for frame in pair:
-                self._left[frame] -= 1
-                if self._left[frame] == 0:
-                    self._built.pop(frame, None)
 
 
 def detect_sift(gray: np.ndarray, max_features: int) -> tuple[np.ndarray, np.ndarray]:

@@ -145,6 +145,25 @@ def guided_tie_points(
     return found_i[refined], found_j[refined]
 
 
+def refined_pair_ties(
+    gray_i: np.ndarray,
+    gray_j: np.ndarray,
+    ties_i: np.ndarray,
+    ties_j: np.ndarray,
+    H_ij: np.ndarray,
+    threshold_px: float,
+    min_inliers: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A pair's (N, 2) descriptor tie points refined on the working copies (:func:`refine_tie_points`), and the
+    (N,) bool of those to keep: within ``threshold_px`` of the model re-fitted on the refined points (USAC judged
+    the coarser positions) and refined, where at least ``min_inliers`` are (the rest are that coarse)."""
+    ties_i, ties_j, refined = refine_tie_points(gray_i, gray_j, ties_i, ties_j, H_ij)
+    _, close = refit_homography(ties_i, ties_j, H_ij, threshold_px)
+    if (close & refined).sum() >= min_inliers:
+        close &= refined
+    return ties_i, ties_j, close
+
+
 def refit_homography(
     points_i: np.ndarray, points_j: np.ndarray, H_ij: np.ndarray, threshold_px: float, rounds: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
