@@ -7,14 +7,8 @@ from __future__ import annotations
 import base64
 import hashlib
 import io
-import os
-import signal
-import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
@@ -22,71 +16,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.conftest import REPO, free_port, make_token
-
-TUS = {"Tus-Resumable": "1.0.0"}
-
-
-@dataclass
-class Api:
-    """One uvicorn of the app over ``data_dir`` (SQLite), started and killed at will."""
-
-    data_dir: Path
-    env: dict[str, str] = field(default_factory=dict)
-    port: int = 0
-    token: str = ""
-    process: subprocess.Popen[bytes] | None = None
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def start(self) -> None:
-        from api.embedded_stack import wait_for_port
-
-        self.port = free_port()
-        log = (self.data_dir.parent / f"api-{self.port}.log").open("wb")
-        cmd = [sys.executable, "-m", "uvicorn", "api.main:create_app", "--factory", "--port", str(self.port)]
-        self.process = subprocess.Popen(cmd, env=self.env, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
-        wait_for_port("127.0.0.1", self.port, 60, self.process)
-
-    def kill(self) -> None:
-        assert self.process is not None
-        self.process.send_signal(signal.SIGKILL)
-        self.process.wait(10)
-
-    def client(self) -> httpx.Client:
-        return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {self.token}", **TUS}, timeout=30)
-
-    def raw_patch(self, path: str, offset: int, length: int, sent: bytes, checksum: str = "") -> socket.socket:
-        """A PATCH announcing ``length`` bytes of which only ``sent`` go; the open socket (close it to cut it)."""
-        head = [
-            f"PATCH {path} HTTP/1.1",
-            f"Host: 127.0.0.1:{self.port}",
-            f"Authorization: Bearer {self.token}",
-            "Tus-Resumable: 1.0.0",
-            "Content-Type: application/offset+octet-stream",
-            f"Upload-Offset: {offset}",
-            f"Content-Length: {length}",
-        ] + ([f"Upload-Checksum: {checksum}"] if checksum else [])
-        sock = socket.create_connection(("127.0.0.1", self.port))
-        sock.sendall(("\r\n".join(head) + "\r\n\r\n").encode() + sent)
-        return sock
+from tests.live_api import ApiProcess, api_process
 
 
 @pytest.fixture
-def api(tmp_path: Path) -> Iterator[Api]:
-    data_dir = tmp_path / "data"
-    env = {
-        **os.environ,
-        "FOTOSKHEMA_DATA_DIR": str(data_dir),
-        "FOTOSKHEMA_DATABASE_URL": "",
-        "FOTOSKHEMA_REDIS_URL": "redis://127.0.0.1:1/0",  # nothing is queued here
-        "FOTOSKHEMA_REAPER_SECONDS": "0",
-        "PYTHONUNBUFFERED": "1",
-    }
-    env.pop("DATABASE_URL", None)
-    server = Api(data_dir, env, token=make_token(env, "admin", admin=True))
+def api(tmp_path: Path) -> Iterator[ApiProcess]:
+    server = api_process(tmp_path / "data")
     server.start()
     yield server
     if server.process is not None and server.process.poll() is None:
@@ -134,7 +69,7 @@ def offset_of(client: httpx.Client, url: str) -> int:
     return int(client.head(url).headers["Upload-Offset"])
 
 
-def test_a_partial_upload_survives_the_api_being_killed_mid_patch(api: Api, photo: bytes) -> None:
+def test_a_partial_upload_survives_the_api_being_killed_mid_patch(api: ApiProcess, photo: bytes) -> None:
     first = 1_200_000
     with api.client() as client:
         flight = client.post("/api/flights", json={"name": "route"}).json()["id"]
@@ -158,7 +93,7 @@ def test_a_partial_upload_survives_the_api_being_killed_mid_patch(api: Api, phot
     assert stored.read_bytes() == photo and image["width"] == 2000  # the tail written before the kill was dropped
 
 
-def test_a_body_cut_off_keeps_what_arrived_unless_it_had_a_checksum(api: Api, photo: bytes) -> None:
+def test_a_body_cut_off_keeps_what_arrived_unless_it_had_a_checksum(api: ApiProcess, photo: bytes) -> None:
     with api.client() as client:
         flight = client.post("/api/flights", json={"name": "route"}).json()["id"]
         url = create(client, flight, photo)
