@@ -1,7 +1,8 @@
 """The viewer's resumable upload in headless Chromium: a server that sends every file by tus in 64 KiB PATCHes;
 the network drops the second PATCH, the page says it is resuming, asks the server where it stands (HEAD) and
-sends only the rest, each chunk with its SHA-256; the photo that arrives is the file, byte for byte. A file
-the server refuses at its last byte shows the server's reason."""
+sends only the rest, each chunk with its SHA-256; the photo that arrives is the file, byte for byte. A page
+reloaded in the middle of an upload continues it when the same file is chosen again. A file the server refuses
+at its last byte shows the server's reason."""
 
 from __future__ import annotations
 
@@ -119,4 +120,42 @@ def test_a_file_refused_at_its_last_byte_shows_the_servers_reason(watched_page, 
     expect(page.get_by_test_id("image-row")).to_have_count(0)
     page.screenshot(path=str(ARTIFACTS / "resumable-upload-refused.png"))
     watch.forget("/uploads/")  # the 422 we provoked
+    watch.assert_clean(tus_service.url)
+
+
+def test_the_same_file_chosen_after_a_reload_continues_its_upload(watched_page, tus_service, tmp_path: Path) -> None:
+    from playwright.sync_api import expect
+
+    page, watch = watched_page
+    flight = open_new_flight(page, tus_service)
+    path = photo_file(tmp_path)
+    seen: list[tuple[str, str]] = []
+    held: list[Any] = []  # the second PATCH, held until the page goes away
+
+    def network(route: Any, request: Any) -> None:
+        seen.append((request.method, request.headers.get("upload-offset", "")))
+        if request.method == "PATCH" and len(held) == 0 and sum(m == "PATCH" for m, _ in seen) == 2:
+            held.append(route)  # never answered: the page is reloaded while it waits
+        else:
+            route.continue_()
+
+    page.route("**/api/flights/*/uploads**", network)
+    page.get_by_test_id("file-input").set_input_files(str(path))
+    for _ in range(200):  # the route handler runs while the page is waited on
+        if held:
+            break
+        page.wait_for_timeout(50)
+    assert held, f"the second PATCH was not sent: {seen}"
+    page.reload()
+    expect(page.get_by_test_id("file-input")).to_be_attached()
+    page.get_by_test_id("file-input").set_input_files(str(path))
+    expect(page.get_by_test_id("image-row")).to_have_count(1, timeout=30_000)
+    after = seen[seen.index(("PATCH", str(CHUNK))) + 1 :]
+    assert ("POST", "") not in after, f"a new upload was made instead of continuing the first: {seen}"
+    assert after[0] == ("HEAD", "") and after[1] == ("PATCH", str(CHUNK)), seen
+    with httpx.Client(base_url=tus_service.url, headers={"Authorization": f"Bearer {tus_service.token}"}) as client:
+        image = client.get(f"/api/flights/{flight}").json()["images"][0]
+    stored = tus_service.data_dir / "flights" / str(flight) / "images" / image["stored_name"]
+    assert stored.read_bytes() == path.read_bytes()
+    watch.failed_requests[:] = [r for r in watch.failed_requests if "/uploads/" not in r]  # the held PATCH
     watch.assert_clean(tus_service.url)
