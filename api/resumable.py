@@ -21,6 +21,7 @@ photo check that every upload must pass.
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import binascii
 import fcntl
@@ -311,7 +312,7 @@ class _Chunk:
 
     def sync(self) -> None:
         self.handle.flush()
-        os.fsync(self.handle.fileno())
+        os.fdatasync(self.handle.fileno())  # the bytes and the file's size: what the offset counts on
 
     def discard(self) -> None:
         self.handle.truncate(self.start)
@@ -370,10 +371,11 @@ def _mismatch(name: str, algorithm: str) -> ApiError:
 
 
 async def _receive(chunk: _Chunk, body: AsyncIterator[bytes], state: UploadState, room: int) -> None:
-    """Write ``body`` through ``chunk`` in pieces of ``WRITE_BYTES``; a body that stops (the client went away,
-    or sent nothing for ``IDLE_SECONDS``) sets ``cut_off`` and keeps what arrived; one past the upload's length
-    is refused (413) and discarded."""
-    buffer = bytearray()
+    """Write ``body`` through ``chunk`` in pieces of about ``WRITE_BYTES``; a body that stops (the client went
+    away, or sent nothing for ``IDLE_SECONDS``) sets ``cut_off`` and keeps what arrived; one past the upload's
+    length is refused (413) and discarded."""
+    pieces: list[bytes] = []
+    held = 0
     iterator = body.__aiter__()
     while True:
         try:
@@ -382,22 +384,24 @@ async def _receive(chunk: _Chunk, body: AsyncIterator[bytes], state: UploadState
         except StopAsyncIteration:
             break
         except (ClientDisconnect, TimeoutError, OSError) as exc:
-            log.info("upload %s: body cut off after %d bytes (%s)", state.id, chunk.received, type(exc).__name__)
+            log.info("upload %s: body cut off after %d bytes (%s)", state.id, chunk.received + held, type(exc).__name__)
             chunk.cut_off = True
             break
-        if chunk.received + len(buffer) + len(piece) > room:
+        if chunk.received + held + len(piece) > room:
             await run_in_threadpool(chunk.discard)
             raise TooLargeError(f"{state.filename}: the chunk goes past Upload-Length ({state.length} bytes)")
-        buffer += piece
-        if len(buffer) >= WRITE_BYTES:
-            await _flush(chunk, buffer)
-    await _flush(chunk, buffer)
+        pieces.append(piece)
+        held += len(piece)
+        if held >= WRITE_BYTES:
+            await _flush(chunk, pieces)
+            held = 0
+    await _flush(chunk, pieces)
 
 
-async def _flush(chunk: _Chunk, buffer: bytearray) -> None:
-    if buffer:
-        data = bytes(buffer)
-        buffer.clear()
+async def _flush(chunk: _Chunk, pieces: list[bytes]) -> None:
+    if pieces:
+        data = b"".join(pieces)
+        pieces.clear()
         await run_in_threadpool(chunk.write, data)
         chunk.received += len(data)
 
@@ -423,8 +427,15 @@ async def _finish(db: Database, settings: Settings, state: UploadState, path: Pa
     (the part file moves into the flight's photos, the row records the photo, in one transaction). A file that
     fails is deleted with its upload."""
     try:
-        meta = await run_in_threadpool(check_photo, path, state.filename, settings)
-        sha256 = await run_in_threadpool(_sha256, path)
+        checked = await asyncio.gather(  # two cores: the photo check and the hash read the file at once
+            run_in_threadpool(check_photo, path, state.filename, settings),
+            run_in_threadpool(_sha256, path),
+            return_exceptions=True,  # both end before the file may be deleted; the check's refusal comes first
+        )
+        for outcome in checked:
+            if isinstance(outcome, BaseException):
+                raise outcome
+        meta, sha256 = checked
         staged = StagedFile(state.filename, path, state.length, sha256, meta)
         refuse_duplicates(db, state.flight_id, [staged])
         image = await run_in_threadpool(_commit, db, settings, state, staged)
