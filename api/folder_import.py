@@ -62,6 +62,7 @@ MAX_ERRORS = 200  # refused files named in an import's record; the count goes on
 COPY_BYTES = 4 * 1024 * 1024
 HEARTBEAT_SECONDS = 5.0  # how often a running import stamps its record
 RUNNING = "running"
+INTERRUPTED = "the API process running it stopped; POST the folder again to import the rest"
 
 
 @dataclass(frozen=True)
@@ -319,10 +320,7 @@ class ImportRunner:
             with self._lock:
                 self._active.discard(import_id)
         if status == RUNNING:  # the API is shutting down
-            status, error = (
-                "interrupted",
-                "the API process running it stopped; POST the folder again to import the rest",
-            )
+            status, error = "interrupted", INTERRUPTED
         _set(self.db, import_id, {"status": status, "error": error}, where_running=True)
 
 
@@ -466,7 +464,7 @@ def get_import(db: Database, settings: Settings, flight_id: int, import_id: int)
             raise NotFoundError(f"import {import_id} not found in flight {flight_id}")
         if is_stale(settings, record):
             record.status = "interrupted"
-            record.error = "the API process running it stopped; POST the folder again to import the rest"
+            record.error = INTERRUPTED
         return record
 
 
