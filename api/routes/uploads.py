@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Coroutine
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Header, Path, Request, Response
+from fastapi import APIRouter, Header, Path, Request, Response
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -51,14 +51,15 @@ class TusRoute(APIRoute):
         return tus_handler
 
 
-def tus_version(tus_resumable: Annotated[str | None, Header()] = None) -> None:
-    """412 (naming the version we speak) for a request without ``Tus-Resumable: 1.0.0``."""
+def tus_version(tus_resumable: str | None) -> None:
+    """412 (naming the version we speak) for a request without ``Tus-Resumable: 1.0.0``; checked in the handler,
+    after the path's ids (a dependency would answer before their 422)."""
     if tus_resumable != resumable.TUS_VERSION:
         raise PreconditionFailedError(f"Tus-Resumable: this server speaks tus {resumable.TUS_VERSION}")
 
 
 router = APIRouter(prefix="/api/flights/{flight_id}/uploads", tags=["uploads"], route_class=TusRoute)
-Tus = [Depends(tus_version)]
+TusResumable = Annotated[str | None, Header(description="the protocol version: 1.0.0")]
 UploadId = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="the upload's id, from its URL")]
 
 
@@ -97,18 +98,20 @@ def server_headers(settings: Settings) -> dict[str, str]:
     }
 
 
-@router.post("", status_code=201, response_model=UploadOut, dependencies=Tus)
+@router.post("", status_code=201, response_model=UploadOut)
 def create_upload(
     flight_id: FlightId,
     principal: UserDep,
     db: DbDep,
     settings: SettingsDep,
+    tus_resumable: TusResumable = None,
     upload_length: Annotated[str | None, Header(description="the file's size in bytes")] = None,
     upload_metadata: Annotated[str | None, Header(description="'filename <base64>', other keys kept")] = None,
     upload_defer_length: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> JSONResponse:
     """tus creation: a new upload of ``Upload-Length`` bytes (at most the per-file limit; 413 above, 507 when
     the disk cannot hold it); its URL is in ``Location``. Send the bytes with PATCH."""
+    tus_version(tus_resumable)
     _flight_exists(db, flight_id)
     state = resumable.create_upload(
         db, settings, flight_id, principal.user_id, upload_length, upload_metadata, upload_defer_length
@@ -124,11 +127,17 @@ def list_uploads(flight_id: FlightId, principal: UserDep, db: DbDep) -> list[Upl
     return [upload_out(db, state) for state in resumable.list_uploads(db, flight_id)]
 
 
-@router.head("/{upload_id}", dependencies=Tus)
+@router.head("/{upload_id}")
 def upload_offset(
-    flight_id: FlightId, upload_id: UploadId, principal: UserDep, db: DbDep, settings: SettingsDep
+    flight_id: FlightId,
+    upload_id: UploadId,
+    principal: UserDep,
+    db: DbDep,
+    settings: SettingsDep,
+    tus_resumable: TusResumable = None,
 ) -> Response:
     """tus core: where to resume (``Upload-Offset``) and the whole length; 404 unknown, 410 expired."""
+    tus_version(tus_resumable)
     state = resumable.upload_state(db, settings, flight_id, upload_id)
     headers = {**state.headers(), "Upload-Length": str(state.length), "Cache-Control": "no-store"}
     if state.metadata_header:
@@ -144,25 +153,38 @@ def get_upload(
     return upload_out(db, resumable.upload_state(db, settings, flight_id, upload_id))
 
 
-@router.patch("/{upload_id}", status_code=204, dependencies=Tus)
+@router.patch("/{upload_id}", status_code=204)
 async def append_bytes(
-    flight_id: FlightId, upload_id: UploadId, request: Request, principal: UserDep, db: DbDep, settings: SettingsDep
+    flight_id: FlightId,
+    upload_id: UploadId,
+    request: Request,
+    principal: UserDep,
+    db: DbDep,
+    settings: SettingsDep,
+    tus_resumable: TusResumable = None,
 ) -> Response:
     """tus core: append the body (``Content-Type: application/offset+octet-stream``) at ``Upload-Offset`` (409
     if that is not where the upload stands), optionally checked by ``Upload-Checksum`` (460 on a mismatch;
     nothing of the chunk is kept). The last byte makes it a photo of the flight, checked as a multipart photo is
     (413/422, 409 for a duplicate: the upload is deleted)."""
+    tus_version(tus_resumable)
     names = ("content-type", "upload-offset", "upload-checksum")
     headers = {name: request.headers.get(name) for name in names}
     state = await resumable.append(db, settings, flight_id, upload_id, headers, request.stream())
     return Response(status_code=204, headers=state.headers())
 
 
-@router.delete("/{upload_id}", status_code=204, dependencies=Tus)
+@router.delete("/{upload_id}", status_code=204)
 def terminate_upload(
-    flight_id: FlightId, upload_id: UploadId, principal: UserDep, db: DbDep, settings: SettingsDep
+    flight_id: FlightId,
+    upload_id: UploadId,
+    principal: UserDep,
+    db: DbDep,
+    settings: SettingsDep,
+    tus_resumable: TusResumable = None,
 ) -> Response:
     """tus termination: the upload and its stored bytes are deleted (a complete upload's photo stays)."""
+    tus_version(tus_resumable)
     resumable.terminate_upload(db, settings, flight_id, upload_id)
     return Response(status_code=204)
 
