@@ -56,6 +56,41 @@ class InvalidInputError(ApiError):
     status_code = 422
 
 
+class GoneError(ApiError):
+    """It existed and was removed (an expired resumable upload): start again."""
+
+    status_code = 410
+
+
+class PreconditionFailedError(ApiError):
+    """A tus request of a protocol version this server does not speak."""
+
+    status_code = 412
+    headers = {"Tus-Version": "1.0.0"}
+
+
+class UnsupportedMediaError(ApiError):
+    status_code = 415
+
+
+class LockedError(ApiError):
+    """Another request is writing to this resource now; retry shortly (tus clients do)."""
+
+    status_code = 423
+
+
+class ChecksumMismatchError(ApiError):
+    """tus checksum extension: the chunk's bytes are not those the client hashed; nothing of it was kept."""
+
+    status_code = 460
+
+
+class InsufficientStorageError(ApiError):
+    """The server's disk cannot hold what the request would store."""
+
+    status_code = 507
+
+
 class UnavailableError(ApiError):
     """A backing service (the queue) is down; retrying later may succeed."""
 

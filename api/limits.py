@@ -121,7 +121,13 @@ class JsonBodyLimits:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS") or not _json_request(scope):
+        tus_patch = scope.get("method") == "PATCH" and _TUS_UPLOAD.match(scope.get("path", ""))  # bytes, never JSON
+        if (
+            scope["type"] != "http"
+            or scope["method"] in ("GET", "HEAD", "OPTIONS")
+            or tus_patch
+            or not _json_request(scope)
+        ):
             await self.app(scope, receive, send)
             return
         body, error = await _read_body(scope, receive)
@@ -206,6 +212,7 @@ _UPLOAD_ROUTES = [  # (method, path, kind): the routes that take files
     ("POST", "/api/crack-surveys", "survey"),
     ("PUT", "/api/flights/{id}/gcps", "gcps"),
 ]
+_TUS_UPLOAD = re.compile(r"^/api/flights/[^/]+/uploads/[^/]+/?$")  # a resumable upload's URL (api.routes.uploads)
 _ROUTE_PATTERNS = [
     (method, re.compile("^" + re.escape(path).replace(re.escape("{id}"), "[^/]+") + "/?$"), kind)
     for method, path, kind in _UPLOAD_ROUTES
@@ -214,7 +221,9 @@ _ROUTE_PATTERNS = [
 
 def body_limits(settings: Settings, method: str, path: str, content_type: bytes) -> BodyLimits:
     """The limits of a request: those of its route when it sends files to one that takes them, else a body of
-    at most ``MAX_JSON_BYTES`` (JSON, a form, anything else)."""
+    at most ``MAX_JSON_BYTES`` (JSON, a form, anything else). A tus PATCH sends at most one file."""
+    if method == "PATCH" and _TUS_UPLOAD.match(path):
+        return BodyLimits(settings.max_upload_bytes)
     if content_type == b"multipart/form-data":
         for route_method, pattern, kind in _ROUTE_PATTERNS:
             if method == route_method and pattern.match(path):

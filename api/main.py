@@ -8,10 +8,12 @@ from fastapi.staticfiles import StaticFiles
 
 from api.auth import BearerForWrites, TrustedHosts, authorize
 from api.errors import install_error_handlers
+from api.folder_import import ImportRunner
 from api.limits import JsonBodyLimits, RequestLimits
 from api.queue import CeleryQueue, JobQueue
 from api.reaper import lifespan
-from api.routes import calibrations, crack_surveys, flights, jobs, tiles, users, web
+from api.routes import calibrations, crack_surveys, flights, imports, jobs, tiles, uploads, users, web
+from api.routes.uploads import TusMethodOverride
 from api.tiler import Tiler
 from core.accounts import TokenCache
 from core.db import Database
@@ -36,6 +38,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     # open COGs and rendered tiles of this process; closed by the lifespan
     app.state.tiler = Tiler(settings.tile_cache_bytes, settings.tile_open_cogs, settings.tile_readers_per_cog)
     app.state.queue = queue or CeleryQueue(settings.redis_url, settings.celery_queue)
+    app.state.imports = ImportRunner(app.state.db, settings)  # server-side folder imports; stopped by the lifespan
     install_error_handlers(app)
     app.add_middleware(JsonBodyLimits)  # size, depth and numbers of a JSON body, before it is parsed
     app.add_middleware(RequestLimits, settings=settings)  # body, file and part sizes, counted as they stream
@@ -43,14 +46,16 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         app.add_middleware(
             CORSMiddleware,
             allow_origins=settings.cors_origins,
-            allow_methods=["GET", "POST", "PUT", "DELETE"],
-            allow_headers=["Authorization", "Content-Type"],
+            allow_methods=["GET", "POST", "PUT", "DELETE", "PATCH", "HEAD"],  # PATCH, HEAD: tus uploads
+            allow_headers=["Authorization", "Content-Type", *uploads.TUS_REQUEST_HEADERS],
+            expose_headers=uploads.TUS_RESPONSE_HEADERS,
         )
     app.add_middleware(
         BearerForWrites, tokens=app.state.tokens
     )  # an anonymous write is refused before its body is read
-    app.add_middleware(TrustedHosts, allowed=settings.allowed_hosts)  # outermost: before anything is read
-    for module in (flights, jobs, calibrations, crack_surveys, tiles):
+    app.add_middleware(TrustedHosts, allowed=settings.allowed_hosts)  # before anything is read
+    app.add_middleware(TusMethodOverride)  # outermost: a tus POST that says it is a PATCH is one for all the rest
+    for module in (flights, uploads, imports, jobs, calibrations, crack_surveys, tiles):
         app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own
     app.include_router(users.router)  # its routes say who may call them
     app.include_router(web.router)  # viewer, health and configuration: open
@@ -58,6 +63,8 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     vendor = settings.web_dir / "node_modules"
     if (vendor / "leaflet").is_dir():
         app.mount("/vendor/leaflet", StaticFiles(directory=vendor / "leaflet" / "dist"), name="leaflet")
+    if (vendor / "tus-js-client").is_dir():  # the viewer's resumable uploads
+        app.mount("/vendor/tus", StaticFiles(directory=vendor / "tus-js-client" / "dist"), name="tus-js-client")
     if (vendor / "swagger-ui-dist").is_dir():
         app.mount("/vendor/swagger-ui", StaticFiles(directory=vendor / "swagger-ui-dist"), name="swagger-ui")
     return app

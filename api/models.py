@@ -156,3 +156,52 @@ class UserOut(BaseModel):
 class TokenCreated(BaseModel):
     user: str
     token: str  # shown once: only its hash is stored
+
+
+class UploadOut(BaseModel):
+    """A resumable (tus) upload of one photo: how far it is, and once complete, the photo it became."""
+
+    id: str
+    url: str  # where HEAD, PATCH and DELETE go (tus's upload URL)
+    filename: str
+    length: int  # bytes, as Upload-Length said
+    offset: int  # bytes stored so far
+    complete: bool
+    expires_at: datetime | None  # an unfinished upload idle until then is deleted
+    image: ImageOut | None = None
+
+
+class ImportCreate(BaseModel):
+    """A folder to import, named relative to one of the server's import directories (``import_dirs``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    root: int = Field(0, ge=0, le=1000)  # which import directory, by its place in FOTOSKHEMA_IMPORT_DIRS
+    path: str = Field(".", max_length=4096)  # relative to it, with / between names; "." is the directory itself
+    recursive: bool = False  # also the photos of its sub-folders
+
+    @field_validator("path")
+    @classmethod
+    def _no_nul(cls, value: str) -> str:
+        if "\x00" in value:
+            raise ValueError("must not contain NUL characters")
+        return value
+
+
+class ImportOut(BaseModel):
+    id: int
+    flight_id: int
+    root: int
+    path: str
+    status: str  # running, succeeded, failed, cancelled, interrupted (its API process stopped; POST it again)
+    total: int  # photo files found
+    done: int  # of them looked at
+    imported: int  # became photos of the flight
+    skipped: int  # already in the flight
+    refused: int  # not photos this service takes, with why in errors
+    errors: dict[str, str]  # file (relative to the folder) -> why it was refused; the first 200
+    bytes_copied: int  # disk the import used: copies (a hard link uses none)
+    gps: dict[str, Any]  # the folder's GPS side file as PUT /api/flights/{id}/gps answers it; {} if none
+    error: str  # why the import stopped, if it did
+    created_at: datetime
+    updated_at: datetime

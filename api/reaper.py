@@ -30,6 +30,7 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import SQLAlchemyError
 
 from api.queue import CeleryQueue
+from api.resumable import UploadSweeper
 from core.db import Database, Job, utcnow
 from core.kinds import JobStatus
 from core.settings import Settings
@@ -121,16 +122,20 @@ class Reaper:
 
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-    """The API process's background work: the reaper, when jobs go to a real queue and it is not turned off;
-    at the end, the tiler's open COGs are closed."""
+    """The API process's background work: the reaper, when jobs go to a real queue and it is not turned off, and
+    the upload sweeper; at the end, folder imports stop and the tiler's open COGs are closed."""
     settings: Settings = app.state.settings
     reaper = None
     if isinstance(app.state.queue, CeleryQueue) and settings.reaper_seconds > 0:
         reaper = Reaper(app.state.db, app.state.queue, settings)
         reaper.start()
+    sweeper = UploadSweeper(app.state.db, settings)  # unfinished resumable uploads that expired, and their bytes
+    sweeper.start()
     try:
         yield
     finally:
+        sweeper.stop()
+        app.state.imports.stop()  # running folder imports stop after their current photo
         if reaper is not None:
             reaper.stop()
         app.state.tiler.close()  # the COGs it holds open

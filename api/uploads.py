@@ -8,12 +8,14 @@ import hashlib
 import os
 import re
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from fastapi import UploadFile
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from api.errors import ConflictError, InvalidInputError, NotFoundError, TooLargeError
@@ -56,8 +58,8 @@ async def store_uploads(db: Database, settings: Settings, flight_id: int, files:
     staged: list[StagedFile] = []
     try:
         staged = await stage_images(files, folder, settings)
-        _refuse_duplicates(db, flight_id, staged)
-        return _commit(db, flight_id, folder, staged)
+        refuse_duplicates(db, flight_id, staged)
+        return commit_staged(db, flight_id, folder, staged)
     finally:
         for item in staged:
             item.temp_path.unlink(missing_ok=True)
@@ -94,23 +96,33 @@ async def _stage(upload: UploadFile, folder: Path, settings: Settings) -> Staged
                     raise TooLargeError(f"{name}: file is larger than {settings.max_upload_bytes} bytes")
                 digest.update(chunk)
                 out.write(chunk)
-        limits = ImageLimits(
-            settings.max_image_pixels,
-            settings.max_image_side,
-            settings.min_image_side,
-            settings.image_decode_budget_bytes,
-        )
-        meta = await run_in_threadpool(inspect_image, temp, limits)
-    except InvalidImageError as exc:
-        temp.unlink(missing_ok=True)
-        raise (TooLargeError if exc.too_large else InvalidInputError)(f"{name}: {exc}") from None
+        meta = await run_in_threadpool(check_photo, temp, name, settings)
     except BaseException:
         temp.unlink(missing_ok=True)
         raise
     return StagedFile(name, temp, size, digest.hexdigest(), meta)
 
 
-def _refuse_duplicates(db: Database, flight_id: int, staged: list[StagedFile]) -> None:
+def image_limits(settings: Settings) -> ImageLimits:
+    return ImageLimits(
+        settings.max_image_pixels,
+        settings.max_image_side,
+        settings.min_image_side,
+        settings.image_decode_budget_bytes,
+    )
+
+
+def check_photo(path: Path, name: str, settings: Settings) -> dict[str, Any]:
+    """``path``'s metadata once it checks out as a photo (``inspect_image``; blocking, run it off the event
+    loop), else 413 (too large) or 422 naming the file by ``name``. The file is left where it is either way."""
+    try:
+        return inspect_image(path, image_limits(settings))
+    except InvalidImageError as exc:
+        raise (TooLargeError if exc.too_large else InvalidInputError)(f"{name}: {exc}") from None
+
+
+def refuse_duplicates(db: Database, flight_id: int, staged: list[StagedFile]) -> None:
+    """409 naming the first of ``staged`` whose bytes are already a photo of the flight (or twice in ``staged``)."""
     seen: dict[str, str] = {}
     with db.session() as s:
         for name, sha in s.execute(
@@ -123,7 +135,15 @@ def _refuse_duplicates(db: Database, flight_id: int, staged: list[StagedFile]) -
         seen[item.sha256] = item.display_name
 
 
-def _commit(db: Database, flight_id: int, folder: Path, staged: list[StagedFile]) -> list[Image]:
+def commit_staged(
+    db: Database,
+    flight_id: int,
+    folder: Path,
+    staged: list[StagedFile],
+    also: Callable[[Session, list[Image]], None] | None = None,
+) -> list[Image]:
+    """Move ``staged`` into ``folder`` under server-chosen names and record them as photos of the flight, in one
+    transaction (``also(session, images)`` runs in it too, after the photos have ids): all or none."""
     moved: list[Path] = []
     try:
         with db.session() as s:
@@ -146,6 +166,8 @@ def _commit(db: Database, flight_id: int, folder: Path, staged: list[StagedFile]
                 s.add(image)
                 images.append(image)
             s.flush()
+            if also is not None:
+                also(s, images)
             return images
     except BaseException:
         for path in moved:  # the records rolled back: take the files back out too

@@ -9,6 +9,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -132,6 +133,49 @@ class Job(Base):
     heartbeat_by: Mapped[str] = mapped_column(String(200), default="")  # "host:pid" of the process running it
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+
+class Upload(Base):
+    """A resumable (tus) upload of one photo into a flight: its bytes so far are in a part file of the flight's
+    folder (``workers.workspace.flight_upload_path``); once all arrived and checked, ``image_id`` names the photo."""
+
+    __tablename__ = "uploads"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)  # random hex, the last part of its URL
+    flight_id: Mapped[int] = mapped_column(ForeignKey("flights.id", ondelete="CASCADE"), index=True)
+    owner_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"), nullable=True)
+    filename: Mapped[str] = mapped_column(String(255))  # as the client named it, for display only
+    metadata_header: Mapped[str] = mapped_column(Text, default="")  # Upload-Metadata as sent, given back by HEAD
+    length: Mapped[int] = mapped_column(BigInteger)  # Upload-Length, bytes
+    offset: Mapped[int] = mapped_column(BigInteger, default=0)  # bytes stored for good (synced to disk)
+    image_id: Mapped[int | None] = mapped_column(Integer, nullable=True)  # the photo it became, once complete
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(index=True)  # moved on by every PATCH; then it is deleted
+
+
+class FolderImport(Base):
+    """A server-side import of a folder under one of ``Settings.import_dirs`` into a flight, and its progress."""
+
+    __tablename__ = "imports"
+    __table_args__ = {"sqlite_autoincrement": True}
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    flight_id: Mapped[int] = mapped_column(ForeignKey("flights.id", ondelete="CASCADE"), index=True)
+    owner_id: Mapped[int | None] = mapped_column(ForeignKey("users.id"), nullable=True)
+    root: Mapped[int] = mapped_column(Integer)  # index into Settings.import_dirs
+    path: Mapped[str] = mapped_column(Text)  # the folder, relative to that root, as the client named it
+    status: Mapped[str] = mapped_column(String(16), default="running")  # running, succeeded, failed, cancelled
+    total: Mapped[int] = mapped_column(Integer, default=0)  # photo files found in the folder
+    done: Mapped[int] = mapped_column(Integer, default=0)  # of them looked at so far
+    imported: Mapped[int] = mapped_column(Integer, default=0)  # became photos of the flight
+    skipped: Mapped[int] = mapped_column(Integer, default=0)  # already in the flight (same file or same bytes)
+    refused: Mapped[int] = mapped_column(Integer, default=0)  # not photos this service takes (why: ``errors``)
+    bytes_copied: Mapped[int] = mapped_column(BigInteger, default=0)  # disk used by copies (hard links use none)
+    errors: Mapped[dict[str, Any]] = mapped_column(default=dict)  # file name -> why it was refused (the first 200)
+    gps: Mapped[dict[str, Any]] = mapped_column(default=dict)  # the folder's GPS side file, as PUT /gps answers
+    error: Mapped[str] = mapped_column(Text, default="")  # why the whole import stopped, if it did
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)  # a running one's sign of life
 
 
 class Database:

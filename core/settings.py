@@ -60,6 +60,13 @@ class Settings(BaseSettings):
     max_mesh_bytes: int = Field(default=64 * 1024 * 1024, ge=1)  # a crack survey's mesh file (OBJ, PLY, STL)
     image_decode_budget_bytes: int = Field(default=1024**3, ge=1)  # pixels that full decodes (TIFF) hold at once
 
+    # -- Large routes: resumable uploads (tus 1.0.0) and server-side import ---------------------------
+    upload_expiry_seconds: int = Field(default=24 * 3600, ge=1)  # an unfinished upload idle this long is deleted, s
+    resumable_upload_bytes: int = Field(default=32 * 1024**2, ge=0)  # the viewer sends files this large by tus; 0: all
+    resumable_chunk_bytes: int = Field(default=32 * 1024**2, ge=64 * 1024)  # bytes per PATCH the viewer sends
+    import_dirs: list[Path] = []  # folders of this machine whose sub-folders may be imported; empty: import off
+    max_import_files: int = Field(default=20_000, ge=1)  # photos one import may name; a larger folder: 413
+
     # -- Liveness --------------------------------------------------------------------------------
     heartbeat_seconds: float = Field(default=10.0, gt=0)  # how often a running stage stamps its job's record
     stale_seconds: float = Field(default=60.0, gt=0)  # a stage silent this long is dead; a waiting job, lost

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One-shot set-up on a fresh machine: a real Redis server, the Python environment, the viewer's
-# JavaScript (Leaflet, Swagger UI) from the npm registry, and (with --test) Chromium for the browser
+# JavaScript (Leaflet, Swagger UI, tus-js-client) from the npm registry, and (with --test) Chromium for the browser
 # tests and PostgreSQL's server binaries for running the API tests on PostgreSQL too.
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
@@ -33,7 +33,8 @@ if [ ! -f "$stamp" ]; then
   touch "$stamp"
 fi
 
-if [ ! -f web/node_modules/leaflet/dist/leaflet.js ] || [ ! -f web/node_modules/swagger-ui-dist/swagger-ui-bundle.js ] || [ ! -x web/node_modules/.bin/eslint ]; then
+if [ ! -f web/node_modules/leaflet/dist/leaflet.js ] || [ ! -f web/node_modules/swagger-ui-dist/swagger-ui-bundle.js ] \
+  || [ ! -f web/node_modules/tus-js-client/dist/tus.min.js ] || [ ! -x web/node_modules/.bin/eslint ]; then
   npm install --prefix web --no-audit --no-fund --loglevel=error >/dev/null
 fi
 echo "setup: ready"

@@ -1,4 +1,5 @@
-// ESLint flat config of the viewer: browser ES modules (no build step), Leaflet as the global `L`.
+// ESLint flat config of the viewer: browser ES modules (no build step), Leaflet as the global `L`, tus-js-client
+// as the global `tus`.
 import js from "@eslint/js";
 import globals from "globals";
 
@@ -15,7 +16,7 @@ export default [
     languageOptions: {
       ecmaVersion: "latest",
       sourceType: "module",
-      globals: { ...globals.browser, L: "readonly" },
+      globals: { ...globals.browser, L: "readonly", tus: "readonly" },
     },
     rules: {
       "no-restricted-properties": [

@@ -2,6 +2,7 @@
 
 import {
   ACTIVE,
+  ApiError,
   api,
   apiForm,
   authHeaders,
@@ -22,6 +23,7 @@ import {
 } from "./lib.js";
 import { JobKind } from "./kinds.js";
 import { deleteControl } from "./delete.js";
+import { byUploadKind, resumableUpload } from "./resumable-upload.js";
 
 const JOB_POLL_MS = 3000; // how often the job list refreshes while a job is active
 
@@ -97,11 +99,13 @@ function uploadPanel(view, flightId, onUploaded) {
     h("p", { class: "muted small" }, "JPEG or TIFF frames, with EXIF GPS for a georeferenced map. Several files per upload."),
   );
   let xhr = null;
+  let busy = false; // an upload is under way (a resumable one has no `xhr` of its own here)
   onAbort(view.signal, () => xhr && xhr.abort());
 
   function finish() {
     if (xhr) xhr.abort();
     xhr = null;
+    busy = false;
     zone.classList.remove("busy");
     input.disabled = false;
     input.value = "";
@@ -110,7 +114,8 @@ function uploadPanel(view, flightId, onUploaded) {
   // one request, and stores each request's photos all or none.
   async function upload(fileList) {
     const files = Array.from(fileList || []);
-    if (!files.length || xhr) return;
+    if (!files.length || xhr || busy) return;
+    busy = true;
     const label = plural(files.length, "photo");
     const totalBytes = files.reduce((sum, f) => sum + f.size, 0);
     zone.classList.add("busy");
@@ -124,7 +129,8 @@ function uploadPanel(view, flightId, onUploaded) {
     let sentBytes = 0;
     try {
       const limits = await api("GET", "/api/config", { signal: view.signal });
-      for (const batch of batches(files, limits)) {
+      const { small, large } = byUploadKind(files, limits);
+      for (const batch of batches(small, limits)) {
         const batchBytes = batch.reduce((sum, f) => sum + f.size, 0);
         const answer = await sendBatch(batch, (loaded) => {
           const percent = totalBytes ? ((sentBytes + loaded) / totalBytes) * 100 : 100;
@@ -138,6 +144,27 @@ function uploadPanel(view, flightId, onUploaded) {
         stored += answer.images.length;
         sentBytes += batchBytes;
         onUploaded(answer.images);
+      }
+      for (const file of large) { // one by one, resumable (tus): a network error resumes from the server's offset
+        const image = await resumableUpload(file, {
+          flightId,
+          chunkBytes: limits.resumable_chunk_bytes,
+          signal: view.signal,
+          onProgress: (sent) => {
+            const percent = totalBytes ? ((sentBytes + sent) / totalBytes) * 100 : 100;
+            bar.set(percent);
+            status.textContent = `Uploading ${label}… ${Math.round(percent)} %`;
+          },
+          onRetry: (attempt, delayMs) => {
+            status.textContent = `Connection lost; resuming ${file.name} in ${Math.round(delayMs / 1000)} s (try ${attempt})…`;
+          },
+        }).catch((error) => {
+          const kept = stored ? ` ${plural(stored, "photo")} of ${files.length} were stored before;` : "";
+          throw new ApiError(error.status || 0, `Upload failed,${kept} ${messageOf(error)}`);
+        });
+        stored += 1;
+        sentBytes += file.size;
+        onUploaded([image]);
       }
       bar.tone("done");
       status.textContent = `Uploaded ${plural(stored, "photo")}.`;

@@ -657,3 +657,15 @@ def find_gps_file(folder: Path) -> Path | None:
 def flight_folder(data_dir: Path, flight_id: int) -> Path:
     """Where the photos of flight ``flight_id`` are stored."""
     return Path(data_dir) / "flights" / str(int(flight_id)) / "images"
+
+
+def flight_uploads_folder(data_dir: Path, flight_id: int) -> Path:
+    """Where the part files of a flight's unfinished resumable uploads are (same file system as its photos)."""
+    return Path(data_dir) / "flights" / str(int(flight_id)) / "uploads"
+
+
+def flight_upload_path(data_dir: Path, flight_id: int, upload_id: str) -> Path:
+    """The part file of resumable upload ``upload_id`` (hex) of flight ``flight_id``."""
+    if not upload_id.isalnum():
+        raise ValueError(f"not an upload id: {upload_id!r}")
+    return flight_uploads_folder(data_dir, flight_id) / f"{upload_id}.part"

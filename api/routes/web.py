@@ -62,11 +62,16 @@ def _database_state(db: Database) -> str:
 @router.get("/api/config", tags=["service"])
 def viewer_config(settings: SettingsDep) -> dict[str, Any]:
     """What the viewer needs to know: an optional basemap URL template (empty: no basemap), whether reads need
-    no token, and the upload limits it splits a big selection of photos by."""
+    no token, the upload limits it splits a big selection of photos by, from what size it sends a photo by
+    resumable upload, and how many import directories there are."""
     return {
         "basemap_url": settings.basemap_url,
         "public_read": settings.public_read,
         "max_upload_bytes": settings.max_upload_bytes,
         "max_request_bytes": settings.max_request_bytes,
         "max_files_per_request": settings.max_files_per_request,
+        # files this large go by resumable (tus) upload, in PATCHes of resumable_chunk_bytes
+        "resumable_upload_bytes": settings.resumable_upload_bytes,
+        "resumable_chunk_bytes": settings.resumable_chunk_bytes,
+        "import_dirs": len(settings.import_dirs),  # how many; server-side import is off when 0
     }

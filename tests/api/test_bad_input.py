@@ -108,9 +108,11 @@ def test_ids_beyond_64_bits_are_422_on_every_route(client: TestClient, unchanged
                     url = url.replace("{" + other + "}", str(TOO_BIG if other == name else 1))
                 response = client.request(method, url)
                 assert response.status_code == 422, (method, url, response.text)
+                checked += 1
+                if method == "head":  # an answer to HEAD has no body to say more
+                    continue
                 (problem,) = [p for p in response.json()["detail"] if p["loc"] == ["path", name]]
                 assert str(MAX_ID) in problem["msg"]
-                checked += 1
     assert checked >= 20
     response = client.get("/api/jobs", params={"flight_id": TOO_BIG})
     assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["query", "flight_id"]

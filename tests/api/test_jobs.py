@@ -187,7 +187,11 @@ def test_docs_render_offline(client: TestClient) -> None:
         "max_upload_bytes": settings.max_upload_bytes,  # the viewer splits uploads by these
         "max_request_bytes": settings.max_request_bytes,
         "max_files_per_request": settings.max_files_per_request,
+        "resumable_upload_bytes": settings.resumable_upload_bytes,  # and sends larger files by tus
+        "resumable_chunk_bytes": settings.resumable_chunk_bytes,
+        "import_dirs": 0,
     }
+    assert client.get("/vendor/tus/tus.min.js").status_code == 200  # the viewer's tus client, vendored
 
 
 def test_a_succeeded_job_carries_its_report_warnings(client: TestClient, api_settings, frames: list[Path]) -> None:

@@ -261,10 +261,36 @@ PARAMETER = st.one_of(
 )
 
 
+# Header parameters (the tus upload routes'): the values they take, numbers past 64 bits, junk
+HEADER = st.one_of(
+    st.sampled_from(
+        [
+            "1.0.0",
+            "1.0.0",
+            "0",
+            "1",
+            "100",
+            "-1",
+            "18446744073709551616",
+            "1e3",
+            "filename YS5qcGc=",
+            "filename",
+            "filename YS5qcGc=,filename Yg==",
+            "sha256 " + "A" * 43 + "=",
+            "sha1 x",
+            ",",
+            "",
+        ]
+    ),
+    st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=20),
+)
+
+
 def requests_for(method: str, path: str, operation: dict[str, Any], defs: dict[str, Any]) -> st.SearchStrategy:
     parameters = operation.get("parameters", [])
     in_path = {p["name"]: PARAMETER for p in parameters if p["in"] == "path"}
     in_query = {p["name"]: PARAMETER for p in parameters if p["in"] == "query"}
+    in_header = {p["name"]: HEADER for p in parameters if p["in"] == "header"}
     content = operation.get("requestBody", {}).get("content", {})
     body: st.SearchStrategy[dict[str, Any]] = st.just({})
     if "application/json" in content:
@@ -278,22 +304,26 @@ def requests_for(method: str, path: str, operation: dict[str, Any], defs: dict[s
     elif "multipart/form-data" in content:
         body = multipart(path, operation, defs)
 
-    def build(drawn: tuple[dict[str, Any], dict[str, Any], dict[str, Any]]) -> dict[str, Any]:
-        path_values, query, payload = drawn
+    def build(drawn: tuple[dict[str, Any], dict[str, Any], dict[str, Any], dict[str, str]]) -> dict[str, Any]:
+        path_values, query, payload, headers = drawn
         url = path
         for name, value in path_values.items():
             url = url.replace("{" + name + "}", quote(str(value), safe="") or "%20")
         request: dict[str, Any] = {"method": method, "url": url, "params": {k: str(v) for k, v in query.items()}}
+        if headers:
+            request["headers"] = headers
         if "content" in payload:
             request["content"] = payload["content"].encode("utf-8", "surrogatepass")
-            request["headers"] = {"content-type": payload["content_type"]} if payload["content_type"] else {}
+            content_type = {"content-type": payload["content_type"]} if payload["content_type"] else {}
+            request["headers"] = {**headers, **content_type}
         elif payload:
             # without files httpx would send the form urlencoded, not as multipart
             request["data"], request["files"] = payload["data"], payload["files"] or [("_", ("empty", b""))]
         return request
 
     query = st.fixed_dictionaries({}, optional=in_query)
-    return st.tuples(st.fixed_dictionaries(in_path), query, body).map(build)
+    headers = st.fixed_dictionaries({}, optional=in_header)
+    return st.tuples(st.fixed_dictionaries(in_path), query, body, headers).map(build)
 
 
 # -- The app under fuzz --------------------------------------------------------------------------------------
@@ -348,7 +378,7 @@ def test_no_request_built_from_the_schema_is_answered_5xx(
     def answered_without_5xx(request: dict[str, Any]) -> None:
         response = fuzzed.request(**request)  # a server exception is raised here, with its traceback
         assert response.status_code < 500, (response.status_code, response.text[:500])
-        if response.status_code >= 400:
+        if response.status_code >= 400 and method != "head":  # an answer to HEAD has no body
             assert "detail" in response.json()
 
     answered_without_5xx()

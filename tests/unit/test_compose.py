@@ -125,6 +125,16 @@ def test_api_and_workers_share_the_data_volume() -> None:
         assert svc["environment"]["FOTOSKHEMA_DATA_DIR"] == "/data"
 
 
+def test_the_import_directory_is_mounted_read_only_and_allowed(monkeypatch: pytest.MonkeyPatch) -> None:
+    from core.settings import Settings
+
+    api = services()["api"]
+    monkeypatch.setenv("FOTOSKHEMA_IMPORT_DIRS", api["environment"]["FOTOSKHEMA_IMPORT_DIRS"])
+    allowed = Settings().import_dirs
+    mounts = {v.split(":")[-2]: v.split(":")[-1] for v in api["volumes"] if v.count(":") >= 2}
+    assert allowed and all(mounts.get(str(d)) == "ro" for d in allowed), (allowed, api["volumes"])
+
+
 def test_gpu_worker_reserves_an_nvidia_device() -> None:
     devices = services()["worker-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert any(d["driver"] == "nvidia" and d["count"] >= 1 and "gpu" in d["capabilities"] for d in devices)
