@@ -21,8 +21,14 @@ def build_parser() -> argparse.ArgumentParser:
     serve = sub.add_parser("serve", help="the REST API, tile server and viewer only")
     _add_http_args(serve, "127.0.0.1", workers=min(4, _cores()))
     worker = sub.add_parser("worker", help="a Celery worker running pipeline stages")
-    worker.add_argument("--queues", default="cpu", help="comma-separated queues to consume (cpu, gpu)")
-    worker.add_argument("--concurrency", type=int, default=1, help="parallel jobs in this worker")
+    worker.add_argument(
+        "--queues", default="", help="comma-separated queues to consume (default: cpu; gpu,cpu with --gpu)"
+    )
+    worker.add_argument("--concurrency", type=int, default=1, help="parallel tasks in this worker")
+    worker.add_argument(
+        "--gpu", type=int, default=None, metavar="N",
+        help="a GPU worker for device N only (CUDA_VISIBLE_DEVICES=N): one such process per GPU of the host",
+    )  # fmt: skip
     from api.accounts_cli import add_users_parser  # noqa: PLC0415 - keep the import list of --help short
 
     add_users_parser(sub)
@@ -79,21 +85,18 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _worker(args: argparse.Namespace) -> int:
+    queues = args.queues or ("gpu,cpu" if args.gpu is not None else "cpu")
+    name: list[str] = []
+    if args.gpu is not None:
+        # Set before CuPy is imported (the worker imports it with the stages): this process sees device N as its
+        # only one. The gpu queue brings it the GPU stages' parts; it takes cpu work too when it has nothing else.
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(args.gpu)
+        name = ["-n", f"gpu{args.gpu}@%h"]  # several workers on one host need distinct names
     from workers.celery_app import app  # noqa: PLC0415
 
-    app.worker_main(
-        [
-            "worker",
-            "--loglevel",
-            "INFO",
-            "-Q",
-            args.queues,
-            "--concurrency",
-            str(args.concurrency),
-            "--without-gossip",  # workers need not know each other: the database and Redis coordinate them
-            "--without-mingle",
-        ]
-    )
+    argv = ["worker", "--loglevel", "INFO", "-Q", queues, "--concurrency", str(args.concurrency), *name]
+    # workers need not know each other: the database and Redis coordinate them
+    app.worker_main([*argv, "--without-gossip", "--without-mingle"])
     return 0
 
 

@@ -62,7 +62,8 @@ def test_every_route_but_health_and_config_needs_a_token(client: TestClient) -> 
                 continue
             assert response.status_code == 401, (method, path, response.status_code, response.text)
             assert response.headers["www-authenticate"].startswith("Bearer")
-            assert "token" in response.json()["detail"]
+            if method != "head":  # an answer to HEAD has no body (tus asks the offset of an upload by HEAD)
+                assert "token" in response.json()["detail"]
             checked += 1
     assert checked >= 25
     bad = client.get("/api/flights", headers={"Authorization": "Bearer fsk_not-a-token"})

@@ -160,11 +160,17 @@ def worker_queues(svc: dict[str, Any]) -> set[str]:
 
 
 def test_the_api_queue_is_consumed_with_and_without_a_gpu() -> None:
+    from core.settings import Settings
+
     svcs = services()
     queue = svcs["api"]["environment"]["FOTOSKHEMA_CELERY_QUEUE"]
     assert queue in worker_queues(svcs["worker-gpu"])
     assert queue in worker_queues(svcs["worker-cpu"]), "without a GPU, no worker would run the jobs"
     assert "deploy" not in svcs["worker-cpu"]
+    # the GPU stages' parts go to the gpu queue when a worker there is alive: only the GPU worker consumes it
+    gpu_queue = Settings().gpu_queue
+    assert gpu_queue in worker_queues(svcs["worker-gpu"]) and gpu_queue not in worker_queues(svcs["worker-cpu"])
+    assert "--gpu" in argv_of(svcs["worker-gpu"]["command"])
 
 
 def test_urls_point_at_compose_services_and_agree_everywhere() -> None:
