@@ -13,6 +13,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
+from api.eta_service import job_eta
 from api.gcp_service import gcp_file
 from api.gps_service import side_file_fixes
 from api.models import JobCreate, JobOut
@@ -84,7 +85,12 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
         gps_source, fixes = side_file_fixes(settings.data_dir, flight.id)  # positions that override EXIF's
         frames = [with_side_file_gps(_frame_input(settings, flight.id, i), gps_source, fixes) for i in flight.images]
         job = Job(
-            flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued, owner_id=owner.user_id
+            flight_id=flight.id,
+            kind=body.kind,
+            options=body.options,
+            status=JobStatus.queued,
+            owner_id=owner.user_id,
+            work={"frames": len(frames)},  # what its time left is estimated per (core.eta)
         )
         s.add(job)
         s.flush()
@@ -140,9 +146,26 @@ def get_job(db: Database, job_id: int) -> JobOut:
         return job_out(job)
 
 
+def flight_name(db: Database, flight_id: int | None) -> str | None:
+    """The name of flight ``flight_id`` (None for none): shown in titles of what other tools read."""
+    if flight_id is None:
+        return None
+    with db.session() as s:
+        flight = s.get(Flight, flight_id)
+        return flight.name if flight is not None else None
+
+
+def get_job_live(db: Database, job_id: int) -> JobOut:
+    """The job with its time left while it is queued or running (``api.eta_service``)."""
+    with db.session() as s:
+        job = job_or_404(s, job_id)
+        return job_out(job).model_copy(update={"eta": job_eta(db, job)})
+
+
 def job_with_warnings(db: Database, settings: Settings, job_id: int) -> JobOut:
-    """The job, with the warnings of its report once it has succeeded (a report that cannot be read has none)."""
-    job = get_job(db, job_id)
+    """The job with its time left, or with the warnings of its report once it has succeeded (a report that cannot
+    be read has none)."""
+    job = get_job_live(db, job_id)
     if job.status != JobStatus.succeeded:
         return job
     try:

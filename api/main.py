@@ -11,7 +11,7 @@ from api.errors import install_error_handlers
 from api.limits import JsonBodyLimits, RequestLimits
 from api.queue import CeleryQueue, JobQueue
 from api.reaper import lifespan
-from api.routes import calibrations, crack_surveys, flights, jobs, tiles, users, web
+from api.routes import calibrations, crack_surveys, flights, jobs, nodeodm, tiles, users, web
 from api.tiler import Tiler
 from core.accounts import TokenCache
 from core.db import Database
@@ -53,6 +53,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     for module in (flights, jobs, calibrations, crack_surveys, tiles):
         app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own
     app.include_router(users.router)  # its routes say who may call them
+    app.include_router(nodeodm.router)  # WebODM's processing-node API: a token as ?token=, owner checks by task
     app.include_router(web.router)  # viewer, health and configuration: open
     app.mount("/static", StaticFiles(directory=settings.web_dir), name="static")
     vendor = settings.web_dir / "node_modules"

@@ -64,7 +64,14 @@ async def record_photo_job(
         frames = _frames(staged)
         check(frames)
         with db.session() as s:
-            job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued, owner_id=owner_id)
+            job = Job(
+                flight_id=None,
+                kind=kind,
+                options=options,
+                status=JobStatus.queued,
+                owner_id=owner_id,
+                work={"frames": len(frames)},  # what its time left is estimated per (core.eta)
+            )
             s.add(job)
             s.flush()
             _write_workspace(job_workspace(settings.data_dir, job.id), staged, frames, config, attachments or {})

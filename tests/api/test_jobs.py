@@ -44,7 +44,7 @@ def test_job_is_recorded_written_and_enqueued(
     assert (workspace / "config.json").exists() and (workspace / "inputs.json").exists()
     assert client.get(f"/api/jobs/{job['id']}").json()["options"] == {"working_max_px": 512}
     assert [j["id"] for j in client.get(f"/api/jobs?flight_id={flight_id}").json()] == [job["id"]]
-    assert client.get(f"/api/jobs/{job['id']}/outputs").json() == {"outputs": []}
+    assert client.get(f"/api/jobs/{job['id']}/outputs").json() == {"outputs": [], "all_zip_url": None}
     assert client.get(f"/tiles/{job['id']}/tilejson.json").status_code == 409
 
 
