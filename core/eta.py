@@ -23,6 +23,7 @@ from typing import Any
 
 # "frame 4/12", "pair 3/20", "block 7/30", "load step 2/5"; the unit is the word(s) before the count
 _COUNT = re.compile(r"([A-Za-z][A-Za-z ]*?)\s+(\d+)\s*/\s*(\d+)")
+BASES = ("measured", "history", "weights", "done")  # what a stage's time left comes from (core.labels names each)
 PRIOR_WEIGHT = 0.25  # how many "whole jobs" of evidence the history's pace counts for before this job's own
 
 
