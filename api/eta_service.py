@@ -1,7 +1,8 @@
 """A running job's time left (``core.eta``) from its record and the service's recent jobs of the same pipeline.
 
-The history (seconds per input frame of each stage, median of the last ``HISTORY_JOBS`` succeeded jobs of the
-pipeline) is read at most once a minute per pipeline and process: a job page's event stream asks every second.
+The history (seconds per input frame or working megapixel of each stage, median of the last ``HISTORY_JOBS``
+succeeded jobs of the pipeline) is read at most once a minute per pipeline and process: a job page's event
+stream asks every second.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Any
 from sqlalchemy import select
 
 from core.db import Database, Job
-from core.eta import UnitCount, estimate, seconds_per_frame
+from core.eta import DEFAULT_RATES, UnitCount, estimate, seconds_per_unit
 from core.kinds import JobStatus
 from workers.pipeline import PIPELINES, pipeline_key
 
@@ -42,19 +43,21 @@ def job_eta(db: Database, job: Job, now: float | None = None) -> dict[str, Any] 
         count = UnitCount(str(current["unit"]), int(current.get("done") or 0), int(current["total"]))
     eta = estimate(
         [(spec.name, spec.weight) for spec in PIPELINES[pipeline]],
-        int(work.get("frames") or 1),
+        job_size(work),
         finished,
         job.stage if running else None,
         float(current.get("fraction") or 0.0) if running else 0.0,
         max(0.0, now - float(current.get("started_at") or now)) if running else 0.0,
         history(db, job.kind, pipeline, now),
         count,
+        DEFAULT_RATES.get(pipeline),
     )
     return None if eta is None else eta.to_json()
 
 
 def history(db: Database, kind: str, pipeline: str, now: float) -> dict[str, float]:
-    """Seconds per input frame of each stage of ``pipeline`` on the service's recent succeeded jobs."""
+    """Seconds per unit of work (``core.eta.work_unit``) of each stage of ``pipeline`` on the service's recent
+    succeeded jobs."""
     key = (str(db.engine.url), pipeline)
     with _lock:
         cached = _cache.get(key)
@@ -66,18 +69,26 @@ def history(db: Database, kind: str, pipeline: str, now: float) -> dict[str, flo
         .order_by(Job.id.desc())
         .limit(HISTORY_SCAN)
     )
-    samples: list[tuple[int, dict[str, float]]] = []
+    samples: list[tuple[dict[str, float], dict[str, float]]] = []
     with db.session() as s:
         for options, timings, work in s.execute(query):
-            frames = int((work or {}).get("frames") or 0)
-            if frames > 0 and timings and pipeline_key(kind, options) == pipeline:
-                samples.append((frames, timings))
+            if (work or {}).get("frames") and timings and pipeline_key(kind, options) == pipeline:
+                samples.append((job_size(work), timings))
             if len(samples) >= HISTORY_JOBS:
                 break
-    rates = seconds_per_frame(samples)
+    rates = seconds_per_unit(samples)
     with _lock:
         _cache[key] = (now, rates)
     return rates
+
+
+def job_size(work: dict[str, Any]) -> dict[str, float]:
+    """What a job's record says of its size: input frames and, when known, working megapixels."""
+    size = {"frames": float(work.get("frames") or 1)}
+    for key in ("megapixels", "photo_megapixels"):
+        if isinstance(work.get(key), int | float):
+            size[key] = float(work[key])
+    return size
 
 
 def forget_history() -> None:

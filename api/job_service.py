@@ -20,6 +20,7 @@ from api.models import JobCreate, JobOut
 from api.queue import JobQueue
 from core.accounts import Principal
 from core.db import Database, Flight, Job, utcnow
+from core.eta import working_megapixels
 from core.kinds import JobStatus
 from core.settings import Settings
 from workers.algorithms.geometry import Camera
@@ -90,7 +91,7 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
             options=body.options,
             status=JobStatus.queued,
             owner_id=owner.user_id,
-            work={"frames": len(frames)},  # what its time left is estimated per (core.eta)
+            work=_size(frames, config),  # what its time left is estimated per (core.eta)
         )
         s.add(job)
         s.flush()
@@ -106,6 +107,19 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
             raise
         job_id = job.id
     return enqueue(db, queue, job_id)
+
+
+def _size(frames: list[dict[str, Any]], config: dict[str, Any]) -> dict[str, Any]:
+    """A job's size: its photos, their megapixels, and the megapixels the stages handle (at the working size, or
+    whole for a mosaic at the photos' own resolution: strips, ``output_resolution: native``)."""
+    sizes = [(int(f.get("width") or 0), int(f.get("height") or 0)) for f in frames]
+    native = config.get("mode") == "strip" or config.get("output_resolution") == "native"
+    working = working_megapixels(sizes, None if native else config.get("working_max_px"))
+    return {
+        "frames": len(frames),
+        "megapixels": round(working, 3),
+        "photo_megapixels": round(working_megapixels(sizes, None), 3),
+    }
 
 
 def _frame_input(settings: Settings, flight_id: int, image: Any) -> dict[str, Any]:

@@ -94,6 +94,7 @@ LABELS: dict[str, dict[str, str]] = {
     "eta_basis": {
         "measured": "measured on this job",
         "history": "from earlier jobs",
+        "defaults": "from typical rates",
         "weights": "from the usual share of each step",
         "done": "finished",
     },
@@ -112,10 +113,10 @@ def javascript() -> str:
         "/* Display names of what the API emits (generated from core/labels.py by `python -m core.labels`;\n"
         " * tests/unit/test_labels.py checks they match). `label(category, value)` falls back to the value. */\n\n"
         f"export const LABELS = Object.freeze({body});\n\n"
-        "/** The display name of `value` in `category` (e.g. label(\"stage\", \"detect_features\")). */\n"
+        '/** The display name of `value` in `category` (e.g. label("stage", "detect_features")). */\n'
         "export function label(category, value) {\n"
         "  const names = LABELS[category] || {};\n"
-        "  return Object.prototype.hasOwnProperty.call(names, value) ? names[value] : String(value ?? \"\");\n"
+        '  return Object.prototype.hasOwnProperty.call(names, value) ? names[value] : String(value ?? "");\n'
         "}\n"
     )
 

@@ -82,6 +82,7 @@ export const LABELS = Object.freeze({
   "eta_basis": {
     "measured": "measured on this job",
     "history": "from earlier jobs",
+    "defaults": "from typical rates",
     "weights": "from the usual share of each step",
     "done": "finished"
   }

@@ -82,8 +82,10 @@ def test_residual_arrows_point_from_the_camera_to_its_gps_fix() -> None:
     data.gps = {"a": np.array([102.0, 100.0]), "b": np.array([300.0, 99.0])}  # a: 2 px east, b: 1 px north
     data.gcps = [("G1", "control", np.array([200.0, 200.0]), np.array([200.0, 201.0]))]
     root = ET.fromstring(positions_svg(data))
-    lines = [(float(g.get("x1")), float(g.get("y1")), float(g.get("x2")), float(g.get("y2")))
-             for g in root.iter(f"{SVG}line")]
+    lines = [
+        (float(g.get("x1")), float(g.get("y1")), float(g.get("x2")), float(g.get("y2")))
+        for g in root.iter(f"{SVG}line")
+    ]
     factor = float(re.search(r"drawn (\d+) x", positions_svg(data))[1])
     assert (100.0, 100.0, 100.0 + 2 * factor, 100.0) in lines and (300.0, 100.0, 300.0, 100.0 - factor) in lines
     assert (200.0, 200.0, 200.0, 200.0 + factor) in lines
