@@ -334,7 +334,9 @@ function stageRows(job) {
       h("span", { class: "stage-dot", "aria-hidden": "true" }),
       h("span", { class: "stage-name" }, label("stage", name)),
       bar.node,
-      h("span", { class: "stage-meta", "data-testid": `stage-meta-${name}` }, stageMeta(job, state, seconds, ahead)),
+      h("span", { class: "stage-meta", "data-testid": `stage-meta-${name}`,
+        title: ahead && ACTIVE.has(job.status) && state !== StageState.DONE ? `time left ${label("eta_basis", ahead.basis)}` : null },
+      stageMeta(job, state, seconds, ahead)),
     );
   });
 }
@@ -360,14 +362,18 @@ function stageMeta(job, state, seconds, ahead) {
     if (active) parts.push(`${roughDuration(ahead.seconds_left)} left`);
     return parts.filter(Boolean).join(" · ") || state;
   }
-  if (state === StageState.PENDING && active) return `≈ ${roughDuration(ahead.seconds_left)} (${label("eta_basis", ahead.basis)})`;
+  if (state === StageState.PENDING && active) return `≈ ${roughDuration(ahead.seconds_left)}`;
   return state; // the state names itself
 }
 
-/** A duration as people say it: "under 5 s", "40 s", "3 min", "1 h 20 min". */
+/** A duration as people say it: "under 5 s", "40 s", "1 min 35 s", "12 min", "1 h 20 min". */
 function roughDuration(s) {
   if (!Number.isFinite(s) || s < 5) return "under 5 s";
   if (s < 60) return `${Math.round(s / 5) * 5} s`;
+  if (s < 600) {
+    const fives = Math.round(s / 5) * 5;
+    return fives % 60 ? `${Math.floor(fives / 60)} min ${fives % 60} s` : `${fives / 60} min`;
+  }
   if (s < 3600) return `${Math.round(s / 60)} min`;
   return `${Math.floor(s / 3600)} h ${Math.round((s % 3600) / 60)} min`;
 }

@@ -259,7 +259,7 @@ def residuals_svg(data: FigureData) -> str:
     """Bars per photo: tie-point RMS (px) and GPS residual (m), side by side, one row per photo."""
     rows = data.per_photo
     row_h, top, name_w, bar_w = 16, 34, 190, 230
-    width, height = name_w + 2 * bar_w + 100, top + row_h * max(len(rows), 1) + 30
+    width, height = name_w + 2 * bar_w + 130, top + row_h * max(len(rows), 1) + 30
     tie_max = max((t for _, t, _ in rows if t is not None), default=0.0) or 1.0
     gps_max = max((g for _, _, g in rows if g is not None), default=0.0) or 1.0
     out = [
@@ -267,7 +267,7 @@ def residuals_svg(data: FigureData) -> str:
         'font-family="sans-serif" font-size="11" role="img"><title>Residuals per photo</title>',
         f'<rect width="{width}" height="{height}" fill="#fff"/>',
         f'<text x="{name_w}" y="14" font-weight="bold">Tie-point RMS (px, max {tie_max:.3g})</text>',
-        f'<text x="{name_w + bar_w + 30}" y="14" font-weight="bold">GPS residual (m, max {gps_max:.3g})</text>',
+        f'<text x="{name_w + bar_w + 60}" y="14" font-weight="bold">GPS residual (m, max {gps_max:.3g})</text>',
     ]
     for n, (name, tie, gps) in enumerate(rows):
         y = top + n * row_h
@@ -277,7 +277,7 @@ def residuals_svg(data: FigureData) -> str:
         )
         for x0, value, top_value, colour, unit in (
             (name_w, tie, tie_max, "#2c7bb6", "px"),
-            (name_w + bar_w + 30, gps, gps_max, "#d7191c", "m"),
+            (name_w + bar_w + 60, gps, gps_max, "#d7191c", "m"),
         ):
             if value is None:
                 out.append(f'<text x="{x0}" y="{y + 11}" fill="#888">–</text>')
