@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import time
 import uuid as uuidlib
+from importlib.metadata import version as package_version
 from pathlib import Path
 from typing import Any, get_args
 
@@ -64,6 +65,8 @@ OPTIONS: dict[str, tuple[str, str]] = {
     "gcp-sigma-m": ("gcp_sigma_m", "accuracy of the ground control points, m (ortho mode)"),
 }
 SIDE_FILES = {"geo.txt": "gps", "gcp_list.txt": "gcps"}  # uploaded beside the photos, as NodeODM takes them
+# other files NodeODM takes beside the photos, for ODM steps this node does not have: accepted, not used
+UNUSED_SIDE_FILES = frozenset({"image_groups.txt", "align.laz", "align.las", "align.tif"})
 # our outputs in ODM's folder layout (WebODM looks for these), anything else under fotoskhema/
 ODM_LAYOUT = {
     "mosaic.tif": "odm_orthophoto/odm_orthophoto.tif",
@@ -195,8 +198,10 @@ def task_ids(db: Database, viewer: Principal) -> list[str]:
 
 
 def side_file_kind(filename: str) -> str | None:
-    """``gps`` or ``gcps`` for a side file uploaded beside the photos (by its name), else None: a photo."""
-    return SIDE_FILES.get(filename.lower())
+    """``gps``, ``gcps`` or ``unused`` for a side file uploaded beside the photos (by its name), else None: a
+    photo."""
+    name = filename.lower()
+    return SIDE_FILES.get(name) or ("unused" if name in UNUSED_SIDE_FILES else None)
 
 
 def commit_task(db: Database, settings: Settings, queue: JobQueue, task: NodeOdmTask, owner: Principal) -> None:
@@ -310,8 +315,6 @@ def node_info(db: Database) -> dict[str, Any]:
     pages = os.sysconf("SC_PHYS_PAGES") if hasattr(os, "sysconf") else 0
     free = os.sysconf("SC_AVPHYS_PAGES") if hasattr(os, "sysconf") else 0
     page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 0
-    from importlib.metadata import version
-
     return {
         "version": API_VERSION,
         "taskQueueCount": waiting,
@@ -320,7 +323,7 @@ def node_info(db: Database) -> dict[str, Any]:
         "cpuCores": os.cpu_count() or 1,
         "maxImages": None,
         "maxParallelTasks": 1,
-        "engineVersion": version("fotoskhema"),
+        "engineVersion": package_version("fotoskhema"),
         "engine": ENGINE,
     }
 

@@ -75,12 +75,12 @@ def _value(text: str) -> ET.Element:
 
 def _layer(contents: ET.Element, layer: WmtsLayer, tms: morecantile.TileMatrixSet) -> None:
     node = _sub(contents, "", "Layer")
-    _sub(node, "ows", "Title", layer.title)
-    _sub(node, "ows", "Identifier", layer.identifier)
+    _sub(node, "ows", "Title", layer.title)  # the schema's order: title, box, identifier
     west, south, east, north = layer.bounds
     box = _sub(node, "ows", "WGS84BoundingBox", crs="urn:ogc:def:crs:OGC:2:84")
     _sub(box, "ows", "LowerCorner", f"{west!r} {south!r}")
     _sub(box, "ows", "UpperCorner", f"{east!r} {north!r}")
+    _sub(node, "ows", "Identifier", layer.identifier)
     _sub(_sub(node, "", "Style", isDefault="true"), "ows", "Identifier", "default")
     _sub(node, "", "Format", "image/png")
     link = _sub(node, "", "TileMatrixSetLink")

@@ -106,7 +106,9 @@ async def upload(
     photos = [f for f in images if nodeodm.side_file_kind(display_name(f.filename)) is None]
     for side in (f for f in images if f not in photos):
         name = display_name(side.filename)
-        store = store_gps if nodeodm.side_file_kind(name) == "gps" else store_gcps
+        if (kind := nodeodm.side_file_kind(name)) == "unused":
+            continue
+        store = store_gps if kind == "gps" else store_gcps
         content = await side.read((MAX_GPS_BYTES if store is store_gps else MAX_GCP_BYTES) + 1)
         await run_in_threadpool(store, db, settings.data_dir, task.flight_id, name, content)
     if photos:

@@ -196,6 +196,8 @@ def test_side_files_become_the_flights_gps_and_gcps(
     assert client.post(f"/task/new/upload/{uuid}?token={token}", files=files).json() == {"success": True}
     flight_dir = next((api_settings.data_dir / "flights").iterdir())
     assert (flight_dir / "geo.txt").read_text() == geo and (flight_dir / "gcp_list.txt").read_text() == gcps
+    groups = [("images", ("image_groups.txt", b"frame_000.jpg A\n", "text/plain"))]  # an ODM step we lack
+    assert client.post(f"/task/new/upload/{uuid}?token={token}", files=groups).json() == {"success": True}
     bad = client.post(
         f"/task/new/upload/{uuid}?token={token}", files=[("images", ("geo.txt", b"EPSG:4326\nx y\n", "t"))]
     )
