@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 from datetime import datetime
 from typing import Annotated
-from urllib.parse import urlencode
+from urllib.parse import parse_qs, urlencode
 
 from fastapi import Depends, Request
 from fastapi.responses import JSONResponse
@@ -33,7 +33,13 @@ READ_METHODS = frozenset({"GET", "HEAD"})
 # The reads a signed URL opens: what image tags, links and EventSource fetch. Not the job's JSON, its outputs
 # listing or its TileJSON, which hand out fresh signatures: those need the token, so a signed link cannot
 # renew itself past its expiry or its owner's revoked token.
-SIGNED_ROUTES = frozenset({"tile", "load_step_tile", "stage_tile", "download_output", "job_events"})
+SIGNED_ROUTES = frozenset(
+    {"tile", "load_step_tile", "stage_tile", "download_output", "job_events", "tms_tile", "tms_tile_png"}
+    | {"download_all", "wmts_capabilities", "stac_item"}
+)
+# Of those, the answers that carry links (a WMTS layer's tile template, a STAC item's assets): opened by a signed
+# URL they hand on that same signature (``link_signature``), never a fresh one, so a link still cannot renew itself.
+RELINKING_ROUTES = frozenset({"wmts_capabilities", "stac_item"})
 _AS_INT = TypeAdapter(int)
 
 
@@ -113,6 +119,17 @@ def job_signature(settings: Settings, job_id: int, created_at: datetime) -> str:
     return urlencode(accounts.sign(key, accounts.job_scope(job_id, created_at), settings.signed_url_seconds))
 
 
+def link_signature(
+    request: Request, viewer: Principal | None, settings: Settings, job_id: int, created: datetime
+) -> str:
+    """The query string that signs the links of an answer about job ``job_id``: the request's own ``exp`` and
+    ``sig`` when a signed URL opened it (``authorize`` has checked them), else a fresh signature."""
+    exp, sig = request.query_params.get("exp"), request.query_params.get("sig")
+    if viewer is None and exp is not None and sig is not None and _route_name(request) in RELINKING_ROUTES:
+        return urlencode({"exp": exp, "sig": sig})
+    return job_signature(settings, job_id, created)
+
+
 def _signed_for(request: Request, db: Database, settings: Settings, job_id: int) -> bool:
     exp, sig = request.query_params.get("exp"), request.query_params.get("sig")
     if exp is None or sig is None:
@@ -176,30 +193,46 @@ class TrustedHosts:
         await JSONResponse({"detail": detail}, status_code=400)(scope, receive, send)
 
 
+# NodeODM's routes (api/routes/nodeodm.py) take the token as ?token=, as NodeODM clients send it; no other does
+QUERY_TOKEN_PATHS = ("/task/",)
+
+
 class BearerForWrites:
     """Answer 401 at once to a write (POST, PUT, DELETE, ...) under /api or /tiles without a valid bearer
     token, before its body is read: a client without one cannot make the server spool an upload (FastAPI
-    reads a form before it runs the route's dependencies). The owner checks are ``authorize``'s."""
+    reads a form before it runs the route's dependencies). The owner checks are ``authorize``'s. NodeODM's
+    writes (under /task/) are held to the same, their token read from ``?token=`` too (NodeODM's ``error``
+    field in the answer)."""
 
     def __init__(self, app: ASGIApp, tokens: accounts.TokenCache) -> None:
         self.app, self.tokens = app, tokens
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path = scope.get("path", "")
+        node = path.startswith(QUERY_TOKEN_PATHS)
         if (
             scope["type"] == "http"
             and scope["method"] not in READ_METHODS | {"OPTIONS"}
-            and scope["path"].startswith(("/api/", "/tiles/"))
+            and (path.startswith(("/api/", "/tiles/")) or node)
         ):
             scheme, _, token = Headers(scope=scope).get("authorization", "").partition(" ")
-            token = token.strip()
-            if scheme.lower() != "bearer" or not token:
+            token = token.strip() if scheme.lower() == "bearer" else ""
+            if node and not token:
+                token = _query_token(scope)
+            if not token:
                 detail = "this needs an API token: send 'Authorization: Bearer <token>'"
             elif await asyncio.to_thread(self.tokens.authenticate, token) is None:
                 detail = "the API token is unknown or revoked; sign in again with a valid token"
             else:
                 await self.app(scope, receive, send)
                 return
-            response = JSONResponse({"detail": detail}, status_code=401, headers=UnauthorizedError.headers)
+            body = {"detail": detail, "error": detail} if node else {"detail": detail}
+            response = JSONResponse(body, status_code=401, headers=UnauthorizedError.headers)
             await response(scope, receive, send)
             return
         await self.app(scope, receive, send)
+
+
+def _query_token(scope: Scope) -> str:
+    values = parse_qs(bytes(scope.get("query_string", b"")).decode("latin-1")).get("token", [])
+    return values[0].strip()[:512] if values else ""

@@ -13,12 +13,14 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from api.errors import ConflictError, InvalidInputError, NotFoundError, UnavailableError
+from api.eta_service import job_eta
 from api.gcp_service import gcp_file
 from api.gps_service import side_file_fixes
 from api.models import JobCreate, JobOut
 from api.queue import JobQueue
 from core.accounts import Principal
 from core.db import Database, Flight, Job, utcnow
+from core.eta import working_megapixels
 from core.kinds import JobStatus
 from core.settings import Settings
 from workers.algorithms.geometry import Camera
@@ -84,7 +86,12 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
         gps_source, fixes = side_file_fixes(settings.data_dir, flight.id)  # positions that override EXIF's
         frames = [with_side_file_gps(_frame_input(settings, flight.id, i), gps_source, fixes) for i in flight.images]
         job = Job(
-            flight_id=flight.id, kind=body.kind, options=body.options, status=JobStatus.queued, owner_id=owner.user_id
+            flight_id=flight.id,
+            kind=body.kind,
+            options=body.options,
+            status=JobStatus.queued,
+            owner_id=owner.user_id,
+            work=_size(frames, config),  # what its time left is estimated per (core.eta)
         )
         s.add(job)
         s.flush()
@@ -100,6 +107,19 @@ def create_job(db: Database, settings: Settings, queue: JobQueue, body: JobCreat
             raise
         job_id = job.id
     return enqueue(db, queue, job_id)
+
+
+def _size(frames: list[dict[str, Any]], config: dict[str, Any]) -> dict[str, Any]:
+    """A job's size: its photos, their megapixels, and the megapixels the stages handle (at the working size, or
+    whole for a mosaic at the photos' own resolution: strips, ``output_resolution: native``)."""
+    sizes = [(int(f.get("width") or 0), int(f.get("height") or 0)) for f in frames]
+    native = config.get("mode") == "strip" or config.get("output_resolution") == "native"
+    working = working_megapixels(sizes, None if native else config.get("working_max_px"))
+    return {
+        "frames": len(frames),
+        "megapixels": round(working, 3),
+        "photo_megapixels": round(working_megapixels(sizes, None), 3),
+    }
 
 
 def _frame_input(settings: Settings, flight_id: int, image: Any) -> dict[str, Any]:
@@ -140,9 +160,26 @@ def get_job(db: Database, job_id: int) -> JobOut:
         return job_out(job)
 
 
+def flight_name(db: Database, flight_id: int | None) -> str | None:
+    """The name of flight ``flight_id`` (None for none): shown in titles of what other tools read."""
+    if flight_id is None:
+        return None
+    with db.session() as s:
+        flight = s.get(Flight, flight_id)
+        return flight.name if flight is not None else None
+
+
+def get_job_live(db: Database, job_id: int) -> JobOut:
+    """The job with its time left while it is queued or running (``api.eta_service``)."""
+    with db.session() as s:
+        job = job_or_404(s, job_id)
+        return job_out(job).model_copy(update={"eta": job_eta(db, job)})
+
+
 def job_with_warnings(db: Database, settings: Settings, job_id: int) -> JobOut:
-    """The job, with the warnings of its report once it has succeeded (a report that cannot be read has none)."""
-    job = get_job(db, job_id)
+    """The job with its time left, or with the warnings of its report once it has succeeded (a report that cannot
+    be read has none)."""
+    job = get_job_live(db, job_id)
     if job.status != JobStatus.succeeded:
         return job
     try:

@@ -211,6 +211,7 @@ _UPLOAD_ROUTES = [  # (method, path, kind): the routes that take files
     ("POST", "/api/stereo-rigs", "photos"),
     ("POST", "/api/crack-surveys", "survey"),
     ("PUT", "/api/flights/{id}/gcps", "gcps"),
+    ("POST", "/task/new/upload/{id}", "photos"),  # NodeODM's: photos, and geo.txt or gcp_list.txt beside them
 ]
 _TUS_UPLOAD = re.compile(r"^/api/flights/[^/]+/uploads/[^/]+/?$")  # a resumable upload's URL (api.routes.uploads)
 _ROUTE_PATTERNS = [

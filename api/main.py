@@ -12,7 +12,7 @@ from api.folder_import import ImportRunner
 from api.limits import JsonBodyLimits, RequestLimits
 from api.queue import CeleryQueue, JobQueue
 from api.reaper import lifespan
-from api.routes import calibrations, crack_surveys, flights, imports, jobs, tiles, uploads, users, web
+from api.routes import calibrations, crack_surveys, flights, imports, jobs, nodeodm, tiles, uploads, users, web
 from api.routes.uploads import TusMethodOverride
 from api.tiler import Tiler
 from core.accounts import TokenCache
@@ -58,6 +58,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     for module in (flights, uploads, imports, jobs, calibrations, crack_surveys, tiles):
         app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own
     app.include_router(users.router)  # its routes say who may call them
+    app.include_router(nodeodm.router)  # WebODM's processing-node API: a token as ?token=, owner checks by task
     app.include_router(web.router)  # viewer, health and configuration: open
     app.mount("/static", StaticFiles(directory=settings.web_dir), name="static")
     vendor = settings.web_dir / "node_modules"

@@ -93,6 +93,10 @@ class JobOut(BaseModel):
     # query string ``exp=...&sig=...`` that opens this job's tiles, downloads and event stream without a token
     # (for image tags and EventSource, which cannot send one) until it expires; from GET /api/jobs/{id} only
     signature: str | None = None
+    # time left of a queued or running job, from rates measured on it and on earlier jobs of its pipeline
+    # (core.eta): {seconds_left, stage_seconds_left, stages: {stage: {seconds_left, basis, unit, units_per_second}}};
+    # from GET /api/jobs/{id} and its event stream only; null when finished or nothing is measured yet
+    eta: dict[str, Any] | None = None
 
 
 class OutputOut(BaseModel):
@@ -103,6 +107,8 @@ class OutputOut(BaseModel):
 
 class OutputsOut(BaseModel):
     outputs: list[OutputOut]
+    # every output in one ZIP (GET /api/jobs/{id}/outputs/all.zip), signed; null while the job has none
+    all_zip_url: str | None = None
 
 
 class JobResultOut(BaseModel):

@@ -23,6 +23,7 @@ from api.models import JobOut
 from api.queue import JobQueue
 from api.uploads import StagedFile, stage_images, stored_name
 from core.db import Database, Job
+from core.eta import working_megapixels
 from core.kinds import JobKind, JobStatus
 from core.settings import Settings
 from workers.workspace import JobWorkspace, atomic_path, job_workspace
@@ -63,8 +64,16 @@ async def record_photo_job(
         staged = {side: await stage_images(files, staging, settings) for side, files in groups.items()}
         frames = _frames(staged)
         check(frames)
+        megapixels = round(working_megapixels([(f["width"], f["height"]) for f in frames], None), 3)
         with db.session() as s:
-            job = Job(flight_id=None, kind=kind, options=options, status=JobStatus.queued, owner_id=owner_id)
+            job = Job(
+                flight_id=None,
+                kind=kind,
+                options=options,
+                status=JobStatus.queued,
+                owner_id=owner_id,
+                work={"frames": len(frames), "megapixels": megapixels, "photo_megapixels": megapixels},  # (core.eta)
+            )
             s.add(job)
             s.flush()
             _write_workspace(job_workspace(settings.data_dir, job.id), staged, frames, config, attachments or {})

@@ -40,7 +40,12 @@ from tests.scenes import make_flight  # noqa: E402
 from workers.pipeline import PIPELINES  # noqa: E402
 
 PARTED = [spec.name for spec in PIPELINES["mosaic"] if spec.parted]
-ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1"}
+ONE_THREAD = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENCV_FOR_THREADS_NUM": "1",
+}
 
 
 def run(frames_dir: Path, workers: int, scratch: Path) -> dict[str, Any]:
@@ -92,8 +97,16 @@ def run(frames_dir: Path, workers: int, scratch: Path) -> dict[str, Any]:
         if job["status"] != "succeeded":
             raise SystemExit(f"{workers} workers: the job {job['status']}: {job.get('error')} (logs: {root / 'logs'})")
         folder = root / "data" / "jobs" / str(job["id"])
-        by = {s: json.loads((folder / "reports" / f"{s}.json").read_text()).get("parts", {}).get("by", {}) for s in PARTED}
-        return {"workers": workers, "seconds": seconds, "stages": job["timings"], "cog": str(folder / "mosaic.tif"), "by": by}
+        by = {
+            s: json.loads((folder / "reports" / f"{s}.json").read_text()).get("parts", {}).get("by", {}) for s in PARTED
+        }
+        return {
+            "workers": workers,
+            "seconds": seconds,
+            "stages": job["timings"],
+            "cog": str(folder / "mosaic.tif"),
+            "by": by,
+        }
     finally:
         stop(procs)
 
@@ -139,7 +152,9 @@ def print_table(results: list[dict[str, Any]]) -> None:
         mark = "*" if stage in PARTED else " "
         print(f"{stage + mark:>18}" + "".join(f"{r['stages'].get(stage, 0.0):>10.2f}" for r in results))
     for r in results:
-        shares = {w: sum(by.get(w, {}).get("parts", 0) for by in r["by"].values()) for by in r["by"].values() for w in by}
+        shares = {
+            w: sum(by.get(w, {}).get("parts", 0) for by in r["by"].values()) for by in r["by"].values() for w in by
+        }
         print(f"{r['workers']} workers: parts done per worker process: {shares}")
 
 
@@ -157,7 +172,10 @@ def main() -> None:
         scratch = Path(tmp)
         frames = scratch / "frames"
         make_flight(frames, n_frames=args.frames, frame_size=(width, height), layout="grid", gps=True, seed=3)
-        print(f"{args.frames} frames of {width}x{height}; workers {args.workers}, one core and one thread each", flush=True)
+        print(
+            f"{args.frames} frames of {width}x{height}; workers {args.workers}, one core and one thread each",
+            flush=True,
+        )
         results = []
         for n in args.workers:
             results.append(run(frames, n, scratch))

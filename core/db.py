@@ -131,6 +131,9 @@ class Job(Base):
     heartbeat_at: Mapped[datetime | None] = mapped_column(nullable=True)  # last sign of life of its running stage
     deliveries: Mapped[int] = mapped_column(Integer, default=0)  # starts of the current stage, reset when it ends
     heartbeat_by: Mapped[str] = mapped_column(String(200), default="")  # "host:pid" of the process running it
+    # what its time left is estimated from (core.eta): {"frames": inputs, "stages": {stage: {seconds, unit, count}},
+    # "current": {stage, started_at (epoch s), fraction, unit, done, total}}
+    work: Mapped[dict[str, Any] | None] = mapped_column(default=dict, nullable=True)  # NULL in jobs made before it
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
@@ -176,6 +179,23 @@ class FolderImport(Base):
     error: Mapped[str] = mapped_column(Text, default="")  # why the whole import stopped, if it did
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)  # a running one's sign of life
+
+
+class NodeOdmTask(Base):
+    """A task made over the NodeODM-compatible routes (WebODM's processing-node API, ``api/routes/nodeodm.py``):
+    the flight its photos go to and, once committed, the mosaic job that processes them. No foreign keys: the
+    flight and job are deleted on their own (a task whose flight is gone is gone too)."""
+
+    __tablename__ = "nodeodm_tasks"
+
+    uuid: Mapped[str] = mapped_column(String(36), primary_key=True)
+    owner_id: Mapped[int | None] = mapped_column(Integer, index=True, nullable=True)
+    flight_id: Mapped[int] = mapped_column(Integer)
+    job_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+    # {"given": NodeODM's [{name, value}] as sent, "job": the mosaic options they map to, "ignored": [names]}
+    options: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
 class Database:

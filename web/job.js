@@ -9,7 +9,6 @@ import {
   formatDate,
   formatSeconds,
   h,
-  humanize,
   jobOutputs,
   jobSignature,
   messageOf,
@@ -22,6 +21,7 @@ import {
 import { CALIBRATION_KINDS, showCalibration } from "./calibration.js";
 import { deleteControl } from "./delete.js";
 import { JobKind, JobStatus } from "./kinds.js";
+import { label } from "./labels.js";
 import { showQuality } from "./quality.js";
 import { showResult } from "./result-map.js";
 
@@ -96,7 +96,7 @@ export function renderJobPage(view, root, initial, { crumbs, cards, listHref, on
   });
   root.append(
     breadcrumb(...crumbs),
-    h("div", { class: "page-head row" }, h("h1", {}, `${humanize(initial.kind)} job #${jobId}`), badge,
+    h("div", { class: "page-head row" }, h("h1", {}, `${label("kind", initial.kind)} job #${jobId}`), badge,
       h("span", { class: "push-right" }, deletion.button)),
     deletion.error,
     h("p", { class: "muted small" }, `Created ${formatDate(initial.created_at)} · last update `, updated),
@@ -179,6 +179,7 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
   const overall = progressBar("Overall job progress", { "data-testid": "job-progress" });
   const percent = h("span", { class: "percent" });
   const detail = h("p", { class: "stage-detail", "data-testid": "job-detail" });
+  const eta = h("p", { class: "muted small", "data-testid": "job-eta", hidden: true });
   const stageList = h("ol", { class: "stages", "aria-label": "Stages" });
   const error = h("div", { class: "alert error", role: "alert", "data-testid": "job-error", hidden: true });
   const cancel = h("button", { type: "button", class: "btn danger", "data-testid": "cancel-job", hidden: true }, "Cancel job");
@@ -226,6 +227,8 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
     overall.tone(succeeded ? "done" : job.status === JobStatus.FAILED ? "error" : job.status === JobStatus.CANCELLED ? "muted" : "");
     percent.textContent = `${Math.round(succeeded ? 100 : job.progress || 0)} %`;
     detail.textContent = stageSentence(job);
+    eta.hidden = !(active && job.eta);
+    eta.textContent = eta.hidden ? "" : etaSentence(job.eta);
     stageList.replaceChildren(...stageRows(job));
     error.hidden = !job.error || succeeded;
     if (!error.hidden) {
@@ -248,6 +251,7 @@ function jobProgressCard(view, jobId, onJob, onRetried) {
     h("div", { class: "row spread" }, h("h2", { id: "progress-heading" }, "Progress"), h("div", { class: "row" }, retry, cancel)),
     h("div", { class: "overall" }, overall.node, percent),
     detail,
+    eta,
     error,
     stageList,
     total,
@@ -272,7 +276,7 @@ const StageState = Object.freeze({
 });
 
 function stageSentence(job) {
-  const stage = job.stage ? humanize(job.stage) : "";
+  const stage = job.stage ? label("stage", job.stage) : "";
   switch (job.status) {
     case JobStatus.QUEUED:
       return "Waiting for a worker…";
@@ -316,22 +320,64 @@ function stageRows(job) {
   const stages = job.stages && job.stages.length ? job.stages : job.stage ? [job.stage] : [];
   return stages.map((name, index) => {
     const state = stageState(job, name, index);
-    const bar = progressBar(`${humanize(name)} progress`);
+    const bar = progressBar(`${label("stage", name)} progress`);
     if (state === StageState.DONE) bar.set(100);
     else if (state === StageState.RUNNING) bar.set(detailFraction(job.progress_detail));
     else if (state === StageState.FAILED || state === StageState.CANCELLED) bar.set(detailFraction(job.progress_detail) ?? 0);
     else bar.set(0);
     bar.tone(state === StageState.DONE ? "done" : state === StageState.FAILED ? "error" : state === StageState.CANCELLED ? "muted" : "");
     const seconds = (job.timings || {})[name];
+    const ahead = ((job.eta || {}).stages || {})[name];
     return h(
       "li",
       { class: `stage stage-${state}`, "data-stage": name },
       h("span", { class: "stage-dot", "aria-hidden": "true" }),
-      h("span", { class: "stage-name", title: name }, humanize(name)),
+      h("span", { class: "stage-name" }, label("stage", name)),
       bar.node,
-      h("span", { class: "stage-meta" },
-        state === StageState.RUNNING && job.progress_detail ? job.progress_detail
-          : state === StageState.DONE && typeof seconds === "number" ? formatSeconds(seconds) : state), // the state names itself
+      h("span", { class: "stage-meta", "data-testid": `stage-meta-${name}`,
+        title: ahead && ACTIVE.has(job.status) && state !== StageState.DONE ? `time left ${label("eta_basis", ahead.basis)}` : null },
+      stageMeta(job, state, seconds, ahead)),
     );
   });
+}
+
+/** "About 2 min 10 s left (this step 35 s)": the job's time left from its measured rates (core/eta.py). */
+function etaSentence(eta) {
+  const left = roughDuration(eta.seconds_left);
+  const step = eta.stage_seconds_left > 0 && eta.stage_seconds_left < eta.seconds_left
+    ? ` (this step ${roughDuration(eta.stage_seconds_left)})` : "";
+  return `About ${left} left${step}`;
+}
+
+/** What a stage's row says after its bar: the running stage's count, rate and time left; a finished stage's
+ * time; a stage to come, its expected time; else its state. */
+function stageMeta(job, state, seconds, ahead) {
+  if (state === StageState.DONE && typeof seconds === "number") return formatSeconds(seconds);
+  const active = ACTIVE.has(job.status) && ahead && Number.isFinite(ahead.seconds_left);
+  if (state === StageState.RUNNING) {
+    const parts = [job.progress_detail];
+    if (active && ahead.unit && Number.isFinite(ahead.units_per_second) && ahead.units_per_second > 0) {
+      parts.push(`${formatRate(ahead.units_per_second)} ${ahead.unit}s/s`);
+    }
+    if (active) parts.push(`${roughDuration(ahead.seconds_left)} left`);
+    return parts.filter(Boolean).join(" · ") || state;
+  }
+  if (state === StageState.PENDING && active) return `≈ ${roughDuration(ahead.seconds_left)}`;
+  return state; // the state names itself
+}
+
+/** A duration as people say it: "under 5 s", "40 s", "1 min 35 s", "12 min", "1 h 20 min". */
+function roughDuration(s) {
+  if (!Number.isFinite(s) || s < 5) return "under 5 s";
+  if (s < 60) return `${Math.round(s / 5) * 5} s`;
+  if (s < 600) {
+    const fives = Math.round(s / 5) * 5;
+    return fives % 60 ? `${Math.floor(fives / 60)} min ${fives % 60} s` : `${fives / 60} min`;
+  }
+  if (s < 3600) return `${Math.round(s / 60)} min`;
+  return `${Math.floor(s / 3600)} h ${Math.round((s % 3600) / 60)} min`;
+}
+
+function formatRate(r) {
+  return r >= 10 ? r.toFixed(0) : r >= 1 ? r.toFixed(1) : r.toPrecision(2);
 }

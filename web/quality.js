@@ -1,6 +1,9 @@
 /* A finished mosaic's "Quality" card, read from its report.json: frames used and rejected, tie-point
  * and reprojection RMS, GSD, GPS residuals and, for ortho jobs, the photo-triangulation's cameras and
- * ground control points. Every field may be missing (older reports, planar jobs): it then shows "–".
+ * ground control points; the report's pictures (overlap, positions and residual arrows, tie points, residuals
+ * per photo: the SVG outputs report.html shows too) and a link to the printable report. Every field may be
+ * missing (older reports, planar jobs): it then shows "–". Identifiers are shown by their display names
+ * (labels.js), never as they are spelt in the JSON.
  */
 
 import {
@@ -15,21 +18,18 @@ import {
   formatParam,
   formatVector,
   h,
-  humanize,
   list,
   warningAlerts,
 } from "./lib.js";
+import { label } from "./labels.js";
 
-const MODES = {
-  planar: "Planar (flat ground)",
-  ortho: "Ortho (photo-triangulation + orthorectification)",
-};
-const DATUMS = {
-  gps: "GPS positions of the photos",
-  gcp: "ground control points",
-  "gps+gcp": "GPS positions and ground control points",
-  arbitrary: "arbitrary (no GPS, no GCPs): not to scale",
-};
+// The report's pictures (outputs of write_report), in the order report.html shows them.
+const FIGURES = [
+  ["report-overlap.svg", "Overlap: how many photos see each part of the mosaic"],
+  ["report-positions.svg", "Camera positions, with arrows to their GPS fixes and ground control residuals"],
+  ["report-tie-points.svg", "Tie points, coloured by how well they agree"],
+  ["report-residuals.svg", "Residuals per photo"],
+];
 
 /** Fill `card` from the job's report.json, if it has one; `outputs` is the job's outputs list. */
 export async function showQuality(view, outputs, card) {
@@ -40,12 +40,31 @@ export async function showQuality(view, outputs, card) {
   card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the report…"));
   const report = await api("GET", url, { signal: view.signal });
   if (view.signal.aborted) return;
-  card.replaceChildren(heading(report && report.mode), ...qualityBody(report || {}).filter(Boolean));
+  card.replaceChildren(heading(report && report.mode, outputs), ...qualityBody(report || {}).filter(Boolean),
+    pictures(outputs));
 }
 
-function heading(mode) {
+function heading(mode, outputs) {
+  const page = apiUrl(((outputs || []).find((o) => o.name === "report.html") || {}).url); // this service's only
   return h("div", { class: "row spread" }, h("h2", { id: "quality-heading" }, "Quality"),
-    mode ? h("span", { class: "badge", "data-testid": "quality-mode" }, mode) : null);
+    h("span", { class: "row" },
+      page ? h("a", { href: page, target: "_blank", rel: "noopener", class: "btn small", "data-testid": "report-html" },
+        "Full report (printable)") : null,
+      mode ? h("span", { class: "badge", "data-testid": "quality-mode" }, label("mode", mode)) : null));
+}
+
+/** The report's pictures, as images of its SVG outputs (signed URLs: an image cannot send the token). */
+function pictures(outputs) {
+  const byName = Object.fromEntries((outputs || []).map((o) => [o.name, o]));
+  const shown = FIGURES.map(([name, caption]) => [apiUrl((byName[name] || {}).url), caption, name]).filter(([url]) => url);
+  if (!shown.length) return null;
+  return h("div", { class: "quality-block", "data-testid": "quality-pictures" },
+    h("h3", {}, "Pictures"),
+    h("div", { class: "quality-figures" }, shown.map(([url, caption, name]) =>
+      h("figure", { class: "quality-figure" },
+        h("a", { href: url, target: "_blank", rel: "noopener" },
+          h("img", { src: url, alt: caption, loading: "lazy", "data-testid": `figure-${name.replace(/\.svg$/, "")}` })),
+        h("figcaption", { class: "muted small" }, caption)))));
 }
 
 function qualityBody(report) {
@@ -55,7 +74,7 @@ function qualityBody(report) {
   const nodes = [
     ...warningAlerts(report.warnings, "quality-warning"), // frames left out or placed again, GPS misfits
     factList([
-      ["Mode", MODES[report.mode] || report.mode || "–", { "data-testid": "quality-mode-text" }],
+      ["Mode", report.mode ? label("mode", report.mode) : "–", { "data-testid": "quality-mode-text" }],
       ["Frames used", known ? `${used.length} of ${used.length + rejected.length}` : "–", { "data-testid": "frames-used" }],
       ["Tie-point RMS", rmsText(report.tie_point_rms_px, report.tie_point_rms_px_original), { "data-testid": "tie-point-rms" }],
       ["GSD of the photos", formatMetres(report.gsd_original_m), { "data-testid": "gsd-original" }],
@@ -98,7 +117,7 @@ function triangulationSection(t) {
     factList([
       ["Cameras registered", registered, { "data-testid": "registered" }],
       ["RMS reprojection", rmsText(t.rms_px, t.rms_px_original), { "data-testid": "rms-reprojection" }],
-      ["Datum", DATUMS[t.datum] || t.datum || "–", { "data-testid": "datum" }],
+      ["Datum", t.datum ? label("datum", t.datum) : "–", { "data-testid": "datum" }],
       ["Observations", formatCount(t.observations)],
       ["3D points", formatCount(t.points)],
       ["Outliers dropped", formatCount(t.outliers_dropped)],
@@ -113,7 +132,7 @@ function triangulationSection(t) {
         { label: "Tie points offered", num: true }, { label: "GPS residual", num: true }],
       rows: list(t.images).map((img) => ({
         attrs: { "data-testid": "image-residual-row", "data-status": typeof img.status === "string" ? img.status : "" },
-        cells: [filename(img.name), typeof img.status === "string" ? img.status : "–", formatNumber(img.rms_px, 2),
+        cells: [filename(img.name), typeof img.status === "string" ? label("image_status", img.status) : "–", formatNumber(img.rms_px, 2),
           formatCount(img.observations), formatCount(img.tie_points_offered), formatMetres(img.gps_residual_m)],
       })),
       attrs: { "data-testid": "image-residuals" },
@@ -126,7 +145,7 @@ function triangulationSection(t) {
         { label: "Error dx, dy, dz", num: true }, { label: "Error 3D m", num: true }],
       rows: list(t.gcps).map((g) => ({
         attrs: { "data-testid": "gcp-row", "data-role": g.role || "" },
-        cells: [g.id ?? "–", g.role ? humanize(g.role) : "–", formatCount(g.observations), formatNumber(g.residual_px, 2),
+        cells: [g.id ?? "–", g.role ? label("gcp_role", g.role) : "–", formatCount(g.observations), formatNumber(g.residual_px, 2),
           errorVector(g.error_m), formatNumber(g.error_3d_m, 3)],
       })),
       attrs: { "data-testid": "gcp-residuals" },
@@ -150,7 +169,8 @@ function selfCalibration(params) {
       caption: "Camera parameters refined by the adjustment",
       columns: [{ label: "Parameter" }, { label: "Initial", num: true }, { label: "Adjusted", num: true }],
       // focal lengths read well with 2 decimals, distortion terms need more
-      rows: Object.entries(params).map(([name, p]) => [name, formatParam(p && p.initial), formatParam(p && p.adjusted)]),
+      rows: Object.entries(params).map(([name, p]) => [label("camera_parameter", name), formatParam(p && p.initial),
+        formatParam(p && p.adjusted)]),
       attrs: { "data-testid": "self-calibration" },
       scroll: false,
     }),

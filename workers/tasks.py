@@ -25,6 +25,7 @@ from celery.exceptions import Ignore, SoftTimeLimitExceeded
 from celery.signals import worker_ready, worker_shutdown
 
 from core.db import Database, Job
+from core.eta import parse_count
 from core.kinds import JobStatus
 from core.settings import get_settings
 from workers import liveness
@@ -89,8 +90,9 @@ class JobRecorder:
         self.beat = beat
         self._last = 0.0
 
-    def update(self, **fields: Any) -> str:
-        """Apply ``fields`` to the record and return its status."""
+    def update(self, current: dict[str, Any] | None = None, **fields: Any) -> str:
+        """Apply ``fields`` to the record (and ``current`` to what ``work`` says of the running stage); return
+        its status."""
         with self.db.session() as s:
             job = s.get(Job, self.job_id)
             if job is None:
@@ -99,7 +101,15 @@ class JobRecorder:
                 return job.status
             for key, value in fields.items():
                 setattr(job, key, value)
+            if current is not None:
+                work = dict(job.work or {})
+                work["current"] = {**(work.get("current") or {}), **current, "stage": self.stage}
+                job.work = work  # a new dict: the JSON column sees the change
             return job.status
+
+    def start(self) -> None:
+        """Record when this stage started (the time-left estimate measures its rate from then)."""
+        self.update(current={"started_at": time.time(), "fraction": 0.0, "unit": None, "done": 0, "total": 0})
 
     def progress(self, fraction: float, detail: str) -> None:
         if self.beat is not None and self.beat.lost:  # the record is no longer this run's: cancelled, or sent again
@@ -110,7 +120,12 @@ class JobRecorder:
         if now - self._last < self.interval and fraction < 1.0:
             return
         self._last = now
-        status = self.update(progress=overall_progress(self.pipeline, self.stage, fraction), progress_detail=detail)
+        current: dict[str, Any] = {"fraction": min(max(float(fraction), 0.0), 1.0)}
+        if (count := parse_count(detail)) is not None:
+            current.update(unit=count.unit, done=count.done, total=count.total)
+        status = self.update(
+            current, progress=overall_progress(self.pipeline, self.stage, fraction), progress_detail=detail
+        )
         if status == JobStatus.cancelled:
             raise JobCancelledError(f"job {self.job_id} was cancelled")
 
@@ -131,6 +146,7 @@ def execute_stage(
     ws = job_workspace(data_dir or settings.data_dir, job_id)
     with liveness.Heartbeat(db, job_id, settings.heartbeat_seconds) as beat:
         rec = JobRecorder(db, job_id, pipeline, stage, beat=beat)
+        rec.start()
         outcome, report = _guarded(rec, ws, lambda: run_stage(ws, pipeline, stage, progress=rec.progress))
     return outcome if report is None else _recorded(rec, ws, stage, report, token)
 
@@ -161,6 +177,7 @@ def execute_plan(
     with liveness.Heartbeat(db, job_id, settings.heartbeat_seconds, hold=True) as beat:
         rec = JobRecorder(db, job_id, pipeline, stage, beat=beat)
         cfg = build_config(job_kind(pipeline), ws.load_config())
+        rec.start()
         rec.progress(0.0, "planning")
         outcome, todo = _guarded(rec, ws, lambda: plan_stage(stages.stage_module(stage), stage, ws, cfg))
     return Plan(outcome, [], False) if todo is None else Plan(JobStatus.running, todo, True)
@@ -345,6 +362,15 @@ def _record_done(rec: JobRecorder, stage: str, report: dict[str, Any], token: st
         if not liveness.accepts(token, job.celery_id):  # sent again as it ended: the new chain records it
             return liveness.SUPERSEDED
         job.timings = {**job.timings, stage: report.get("wall_seconds", 0.0)}
+        work = dict(job.work or {})
+        last = work.pop("current", None) or {}
+        unit = last.get("unit") if last.get("stage") == stage else None
+        count = last.get("total") if unit else None
+        work["stages"] = {
+            **work.get("stages", {}),
+            stage: {"seconds": report.get("wall_seconds", 0.0), "unit": unit, "count": count},
+        }
+        job.work = work
         job.progress = overall_progress(rec.pipeline, stage, 1.0)
         if stage == PIPELINES[rec.pipeline][-1].name and job.status == JobStatus.running:
             job.status, job.progress, job.progress_detail = JobStatus.succeeded, 100.0, "done"

@@ -77,8 +77,17 @@ _CAMERAS = "cameras.json"
 _ORIENTATION = "orientation.json"
 _COMPARISON = "comparison.json"
 _REPORT = "report.json"
+_REPORT_HTML = "report.html"  # the same report for people: pictures, tables, warnings (write_report)
+# the report's pictures, also outputs of their own (the viewer's quality card shows them): name -> what they show
+REPORT_FIGURES = {
+    "report-overlap.svg": "overlap",
+    "report-tie-points.svg": "tie_points",
+    "report-positions.svg": "positions",
+    "report-residuals.svg": "residuals",
+}
 _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
+_DSM = "dsm.tif"  # a digital surface model COG, by the stages that make one (none yet); an output when present
 _FOOTPRINTS = "footprints.geojson"
 _CRACKS_GEOJSON = "cracks.geojson"
 
@@ -417,6 +426,21 @@ class JobWorkspace:
         """The mosaic COG (an output, read by the tile routes)."""
         return self.root / _MOSAIC
 
+    def dsm_path(self) -> Path:
+        """The job's digital surface model COG (an output when a stage wrote one)."""
+        return self.root / _DSM
+
+    def save_report_html(self, html: str, figures: dict[str, str]) -> None:
+        """``report.html`` and its pictures (``REPORT_FIGURES`` name -> SVG text); a picture not given is removed."""
+        for name in REPORT_FIGURES:
+            if name in figures:
+                with atomic_path(self.root / name) as tmp:
+                    tmp.write_text(figures[name], encoding="utf-8")
+            else:
+                (self.root / name).unlink(missing_ok=True)
+        with atomic_path(self.root / _REPORT_HTML) as tmp:
+            tmp.write_text(html, encoding="utf-8")
+
     def has_report(self) -> bool:
         return (self.root / _REPORT).exists()
 
@@ -485,7 +509,7 @@ class JobWorkspace:
                 *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
             ],
             "compose_mosaic": lambda: [r / _COVERAGE, self.mosaic_path()],
-            "write_report": lambda: [r / _REPORT],
+            "write_report": lambda: [r / _REPORT, r / _REPORT_HTML],
             "detect_corners": lambda: [r / _CORNERS],
             "calibrate_camera": lambda: [r / _CALIBRATION],
             "fit_plumb_line": lambda: [r / _CALIBRATION],
@@ -566,7 +590,10 @@ class JobWorkspace:
         """Downloadable outputs that exist, by public name."""
         names = [
             _MOSAIC,
+            _DSM,
             _REPORT,
+            _REPORT_HTML,
+            *REPORT_FIGURES,
             _FOOTPRINTS,
             _CUTLINES,
             _CALIBRATION,

@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator
+from typing import Any
 
 from fastapi import APIRouter, Request, Response
-from fastapi.responses import FileResponse, StreamingResponse
+from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
 from api import job_service
-from api.auth import UserDep, Viewer, job_signature, owner_filter
+from api.auth import UserDep, Viewer, job_signature, link_signature, owner_filter
 from api.deps import DbDep, FlightFilter, JobId, QueueDep, SettingsDep
-from api.errors import NotFoundError
+from api.errors import ConflictError, NotFoundError
 from api.models import JobCreate, JobOut, OutputOut, OutputsOut
+from api.stac import stac_item
+from api.zipstream import zip_chunks
 from core.kinds import JobStatus
 from workers.workspace import job_workspace
 
@@ -24,7 +27,13 @@ MEDIA_TYPES = {
     ".geojson": "application/geo+json",
     ".csv": "text/csv",
     ".png": "image/png",
+    ".html": "text/html; charset=utf-8",
+    ".svg": "image/svg+xml",
 }
+# The report and its pictures open in the browser, as documents with no script, no request to anywhere and an
+# origin of their own (sandbox): whatever a photo's name held, it cannot reach the viewer's token.
+INLINE_SUFFIXES = frozenset({".html", ".svg"})
+DOCUMENT_POLICY = "default-src 'none'; style-src 'unsafe-inline'; img-src data:; sandbox"
 
 
 @router.post("", status_code=202, response_model=JobOut)
@@ -67,13 +76,14 @@ def retry_job(job_id: JobId, db: DbDep, settings: SettingsDep, queue: QueueDep) 
 
 @router.get("/{job_id}/events")
 async def job_events(job_id: JobId, request: Request, db: DbDep, settings: SettingsDep) -> StreamingResponse:
-    """Server-Sent Events: ``progress`` with the job JSON at every change, then ``end`` when it finishes."""
+    """Server-Sent Events: ``progress`` with the job JSON (its ``eta`` too) at every change, then ``end`` when it
+    finishes."""
     job_service.get_job(db, job_id)  # 404 before the stream starts
 
     async def stream() -> AsyncIterator[str]:
         last = ""
         while not await request.is_disconnected():
-            job = await asyncio.to_thread(job_service.get_job, db, job_id)
+            job = await asyncio.to_thread(job_service.get_job_live, db, job_id)
             data = job.model_dump_json()
             if JobStatus(job.status).finished:
                 yield f"event: end\ndata: {data}\n\n"
@@ -95,6 +105,7 @@ def list_outputs(job_id: JobId, request: Request, db: DbDep, settings: SettingsD
     outputs = job_workspace(settings.data_dir, job_id).outputs()
     signature = job_signature(settings, job_id, job.created_at)  # a link opens without a token, for a while
     return OutputsOut(
+        all_zip_url=f"{request.url_for('download_all', job_id=job_id)}?{signature}" if outputs else None,
         outputs=[
             OutputOut(
                 name=name,
@@ -102,17 +113,72 @@ def list_outputs(job_id: JobId, request: Request, db: DbDep, settings: SettingsD
                 url=f"{request.url_for('download_output', job_id=job_id, name=name)}?{signature}",
             )
             for name, path in outputs.items()
-        ]
+        ],
     )
+
+
+@router.get("/{job_id}/outputs/all.zip", name="download_all", responses={200: {"content": {"application/zip": {}}}})
+def download_all(job_id: JobId, db: DbDep, settings: SettingsDep) -> StreamingResponse:
+    """Every output of the job in one ZIP, under the names /outputs lists, written as it is sent."""
+    job_service.get_job(db, job_id)
+    outputs = job_workspace(settings.data_dir, job_id).outputs()
+    if not outputs:
+        raise ConflictError(f"job {job_id} has no outputs yet")
+    headers = {"Content-Disposition": f'attachment; filename="job{job_id}_all.zip"'}
+    return StreamingResponse(zip_chunks(outputs.items()), media_type="application/zip", headers=headers)
 
 
 @router.get("/{job_id}/outputs/{name}", name="download_output")
 def download_output(job_id: JobId, name: str, db: DbDep, settings: SettingsDep) -> FileResponse:
-    """Download one output by its public name (never a path: only names listed by /outputs resolve)."""
+    """Download one output by its public name (never a path: only names listed by /outputs resolve). The HTML
+    report and its SVG pictures open in the browser (sandboxed); the rest downloads."""
     job_service.get_job(db, job_id)
     path = job_workspace(settings.data_dir, job_id).outputs().get(name)
     if path is None:
         raise NotFoundError(f"job {job_id} has no output named {name!r}")
+    inline = path.suffix in INLINE_SUFFIXES
     return FileResponse(
-        path, media_type=MEDIA_TYPES.get(path.suffix, "application/octet-stream"), filename=f"job{job_id}_{name}"
+        path,
+        media_type=MEDIA_TYPES.get(path.suffix, "application/octet-stream"),
+        filename=f"job{job_id}_{name}",
+        content_disposition_type="inline" if inline else "attachment",
+        headers={"Content-Security-Policy": DOCUMENT_POLICY, "X-Content-Type-Options": "nosniff"} if inline else None,
     )
+
+
+@router.get("/{job_id}/stac.json", name="stac_item", responses={200: {"content": {"application/geo+json": {}}}})
+def get_stac_item(job_id: JobId, request: Request, viewer: Viewer, db: DbDep, settings: SettingsDep) -> JSONResponse:
+    """The succeeded job as a STAC 1.1 item (projection extension): mosaic, DSM when present, report and
+    footprints as assets with signed URLs; opened by a signed URL, it hands on that signature."""
+    job = job_service.get_job(db, job_id)
+    ws = job_workspace(settings.data_dir, job_id)
+    outputs = ws.outputs()
+    if job.status != JobStatus.succeeded or "mosaic.tif" not in outputs:
+        raise ConflictError(f"job {job_id} has no finished mosaic (status: {job.status}); a STAC item needs one")
+    signature = link_signature(request, viewer, settings, job_id, job.created_at)
+    item = stac_item(
+        job,
+        outputs,
+        ws.load_report(),
+        _capture_times(ws),
+        _item_links(request, job, signature, outputs),
+        job_service.flight_name(db, job.flight_id),
+    )
+    return JSONResponse(item, media_type="application/geo+json")
+
+
+def _item_links(request: Request, job: JobOut, signature: str, outputs: dict[str, Any]) -> dict[str, str]:
+    links = {name: f"{request.url_for('download_output', job_id=job.id, name=name)}?{signature}" for name in outputs}
+    links["self"] = str(request.url_for("stac_item", job_id=job.id))
+    links["viewer"] = f"{str(request.base_url).rstrip('/')}/#/jobs/{job.id}"
+    zero = str(request.url_for("tms_tile_png", job_id=job.id, tms_id="WebMercatorQuad", z=0, x=0, y=0))
+    links["xyz"] = zero.removesuffix("/0/0/0.png") + "/{z}/{x}/{y}.png?" + signature
+    links["wmts"] = f"{request.url_for('wmts_capabilities', job_id=job.id, tms_id='WebMercatorQuad')}?{signature}"
+    return links
+
+
+def _capture_times(ws: Any) -> list[str]:
+    try:
+        return [f["datetime"] for f in ws.load_inputs() if isinstance(f.get("datetime"), str)]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []

@@ -22,13 +22,15 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header, Request, Response
+from fastapi import Path as PathParam
 from sqlalchemy import select
 
 from api import job_service
-from api.auth import job_signature
+from api.auth import Viewer, job_signature, link_signature
 from api.deps import DbDep, JobId, SettingsDep, TileIndex
 from api.errors import ConflictError, NotFoundError
 from api.tiler import TILE_SIZE, CogIdentity, TileNotFoundError, Tiler
+from api.wmts import SUPPORTED_TMS, WmtsLayer, capabilities
 from core.db import Database, Job
 from core.kinds import JobKind, JobStatus
 from core.settings import Settings
@@ -39,6 +41,7 @@ PNG: dict[int | str, dict[str, Any]] = {
     200: {"content": {"image/png": {}}},
     304: {"description": "the tile named by ``If-None-Match`` is unchanged"},
 }  # OpenAPI: tiles are PNG
+WMTS_XML: dict[int | str, dict[str, Any]] = {200: {"content": {"application/xml": {}}}}
 
 
 def get_tiler(request: Request) -> Tiler:
@@ -48,6 +51,7 @@ def get_tiler(request: Request) -> Tiler:
 
 TilerDep = Annotated[Tiler, Depends(get_tiler)]
 IfNoneMatch = Annotated[str | None, Header(include_in_schema=False)]
+TmsId = Annotated[str, PathParam(max_length=64, description="the tile matrix set: WebMercatorQuad")]
 
 
 # -- Which COG a route serves --------------------------------------------------------------------
@@ -153,6 +157,77 @@ def _signed_tiles(tilejson: dict[str, Any], db: Any, settings: Any, job_id: int)
     """The TileJSON with its tile URLs signed: a map's image tags cannot send a token."""
     signature = job_signature(settings, job_id, job_service.get_job(db, job_id).created_at)
     return {**tilejson, "tiles": [f"{url}?{signature}" for url in tilejson["tiles"]]}
+
+
+# The same tiles under the id of their OGC tile matrix set, as TiTiler and OGC API - Tiles name them
+# (``/tiles/{job}/WebMercatorQuad/{z}/{x}/{y}``, with or without ``.png``), and the WMTS capabilities of the job's
+# mosaic in that set, which QGIS reads to add it as a layer.
+
+
+@router.get("/{job_id}/{tms_id}/{z}/{x}/{y}.png", responses=PNG, name="tms_tile_png")
+def tms_tile_png(
+    job_id: JobId,
+    tms_id: TmsId,
+    z: TileIndex,
+    x: TileIndex,
+    y: TileIndex,
+    db: DbDep,
+    settings: SettingsDep,
+    tiler: TilerDep,
+    if_none_match: IfNoneMatch = None,
+) -> Response:
+    """The tile of ``/tiles/{job}/{z}/{x}/{y}.png``, named by its tile matrix set (only WebMercatorQuad)."""
+    _check_tms(tms_id)
+    return tile(job_id, z, x, y, db, settings, tiler, if_none_match)
+
+
+@router.get("/{job_id}/{tms_id}/{z}/{x}/{y}", responses=PNG, name="tms_tile")
+def tms_tile(
+    job_id: JobId,
+    tms_id: TmsId,
+    z: TileIndex,
+    x: TileIndex,
+    y: TileIndex,
+    db: DbDep,
+    settings: SettingsDep,
+    tiler: TilerDep,
+    if_none_match: IfNoneMatch = None,
+) -> Response:
+    """The same PNG tile without the suffix."""
+    return tms_tile_png(job_id, tms_id, z, x, y, db, settings, tiler, if_none_match)
+
+
+@router.get("/{job_id}/{tms_id}/WMTSCapabilities.xml", name="wmts_capabilities", responses=WMTS_XML)
+def wmts_capabilities(
+    job_id: JobId, tms_id: TmsId, request: Request, viewer: Viewer, db: DbDep, settings: SettingsDep, tiler: TilerDep
+) -> Response:
+    """OGC WMTS 1.0.0 GetCapabilities (RESTful) of the job's mosaic, one layer ``job-{id}``: paste this URL
+    into QGIS (Layer > Add WMS/WMTS Layer). Its tile template is signed (for ``FOTOSKHEMA_SIGNED_URL_SECONDS``);
+    opened by a signed URL, it hands on that signature."""
+    _check_tms(tms_id)
+    cog = _mosaic_cog(db, settings, job_id)
+    info = tiler.info(cog.identity)
+    if not info.georeferenced:
+        raise ConflictError(f"job {job_id}'s mosaic has no map coordinates (no GPS): it has no WMTS layer")
+    job = job_service.get_job(db, job_id)
+    signature = link_signature(request, viewer, settings, job_id, job.created_at)
+    zero = str(request.url_for("tms_tile_png", job_id=job_id, tms_id=tms_id, z=0, x=0, y=0))
+    template = zero.removesuffix("/0/0/0.png") + "/{TileMatrix}/{TileCol}/{TileRow}.png" + f"?{signature}"
+    layer = WmtsLayer(
+        f"job-{job_id}", _layer_title(db, job_id, job.flight_id), info.bounds, info.minzoom, info.maxzoom, template
+    )
+    body = capabilities("Fotoskhema", [layer], str(request.url))
+    return Response(body, media_type="application/xml", headers={"Cache-Control": "private, no-cache"})
+
+
+def _check_tms(tms_id: str) -> None:
+    if tms_id not in SUPPORTED_TMS:
+        raise NotFoundError(f"tile matrix set {tms_id[:64]!r} is not served; use one of {', '.join(SUPPORTED_TMS)}")
+
+
+def _layer_title(db: Database, job_id: int, flight_id: int | None) -> str:
+    name = job_service.flight_name(db, flight_id)
+    return f"{name} (job {job_id})" if name else f"Mosaic of job {job_id}"
 
 
 # The former paths of the two routes above (a load step was called a stage), kept for links and clients made

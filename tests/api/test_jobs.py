@@ -13,7 +13,7 @@ from tests.conftest import RecordingQueue
 from tests.scenes import make_flight
 from workers.pipeline import stage_names
 from workers.tasks import execute_stage
-from workers.workspace import job_workspace
+from workers.workspace import REPORT_FIGURES, job_workspace
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_job_is_recorded_written_and_enqueued(
     assert (workspace / "config.json").exists() and (workspace / "inputs.json").exists()
     assert client.get(f"/api/jobs/{job['id']}").json()["options"] == {"working_max_px": 512}
     assert [j["id"] for j in client.get(f"/api/jobs?flight_id={flight_id}").json()] == [job["id"]]
-    assert client.get(f"/api/jobs/{job['id']}/outputs").json() == {"outputs": []}
+    assert client.get(f"/api/jobs/{job['id']}/outputs").json() == {"outputs": [], "all_zip_url": None}
     assert client.get(f"/tiles/{job['id']}/tilejson.json").status_code == 409
 
 
@@ -140,7 +140,7 @@ def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_se
         assert record["stage"] == stage and stage in record["timings"]
     assert status == "succeeded" and progress == sorted(progress) and progress[-1] == 100
     names = {o["name"] for o in client.get(f"/api/jobs/{job['id']}/outputs").json()["outputs"]}
-    assert names == {"mosaic.tif", "report.json", "footprints.geojson"}
+    assert names == {"mosaic.tif", "report.json", "footprints.geojson", "report.html", *REPORT_FIGURES}
     cog = client.get(f"/api/jobs/{job['id']}/outputs/mosaic.tif")
     assert cog.status_code == 200 and cog.content[:4] in (b"II*\x00", b"II+\x00")
     assert client.get(f"/api/jobs/{job['id']}/outputs/config.json").status_code == 404  # only named outputs

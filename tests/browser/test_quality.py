@@ -33,14 +33,18 @@ TRIANGULATION = {
     "observations": 5120,
     "points": 1400,
     "outliers_dropped": 37,
-    "datum": "gps+gcp",
-    "self_calibration": {"focal": {"initial": 3000.0, "adjusted": 3012.4}, "k1": {"initial": 0.0, "adjusted": -0.0123}},
+    "datum": "gps_line_level_cameras",
+    "self_calibration": {
+        "focal_px_original": {"initial": 3000.0, "adjusted": 3012.4},
+        "k1": {"initial": 0.0, "adjusted": -0.0123},
+    },
     "images": [
         {
             "name": f"frame_{i:03d}.jpg",
             "rms_px": 0.5 + i / 100,
             "observations": 180 + i,
             "gps_residual_m": 0.8 if i else None,
+            "status": "placed again" if i == 3 else "registered",
         }
         for i in range(28)
     ],
@@ -213,7 +217,7 @@ def test_quality_card_of_planar_mosaic(signed_in_page, live_service, planar_job)
     page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
     quality = page.get_by_test_id("quality")
     expect(quality).to_be_visible()
-    expect(page.get_by_test_id("quality-mode")).to_have_text("planar")
+    expect(page.get_by_test_id("quality-mode")).to_have_text("Planar (flat ground)")
     expect(page.get_by_test_id("frames-used")).to_have_text("5 of 5")
     expect(page.get_by_test_id("frames-rejected")).to_contain_text("No frame was rejected")
     rms = _numbers(page.get_by_test_id("tie-point-rms").inner_text())
@@ -250,6 +254,18 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
         "frame_028.jpg was placed again after the adjustment (it kept 3 of 410 tie points)"
     )
     expect(page.get_by_test_id("self-calibration")).to_contain_text("3012.40")
+    # identifiers by their display names (core/labels.py), never as the JSON spells them
+    expect(page.get_by_test_id("self-calibration")).to_contain_text("Focal length (px of the full-size photo)")
+    expect(page.get_by_test_id("datum")).to_have_text(
+        "Fitted to the GPS positions along the flight line (cameras taken as level)"
+    )
+    expect(page.get_by_test_id("image-residual-row").nth(3).locator("td").nth(1)).to_have_text(
+        "Placed again after a misfit"
+    )
+    expect(page.get_by_test_id("gcp-row").first.locator("td").nth(1)).to_have_text("Control point")
+    card = page.get_by_test_id("quality").inner_text()
+    for raw in ("gps_line_level_cameras", "focal_px_original", "checkpoint"):
+        assert raw not in card, f"{raw!r} shown as the API spells it"
     rows = page.get_by_test_id("gcp-row")
     expect(rows).to_have_count(2)
     expect(rows.first).to_contain_text("0.010, -0.020, 0.030 m")
@@ -348,3 +364,88 @@ def test_ortho_job_from_the_flight_page(signed_in_page, live_service, tmp_path) 
     assert gps and gps[0] < 100  # cm: the synthetic GPS is exact, the prior assumes 5 m
     _screenshot(page, "quality_ortho_real")
     watch.assert_clean(url)
+
+
+def test_quality_card_pictures_and_the_printable_report(signed_in_page, live_service, planar_job) -> None:
+    """The card shows the report's four pictures (the SVG outputs, signed) and links report.html, which opens
+    as a page of its own: every picture inline, the tables, nothing fetched from anywhere."""
+    from playwright.sync_api import expect
+
+    page, watch = signed_in_page
+    page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
+    pictures = page.get_by_test_id("quality-pictures")
+    expect(pictures.locator("img")).to_have_count(4)
+    for name in ("overlap", "positions", "tie-points", "residuals"):
+        figure = page.get_by_test_id(f"figure-report-{name}")
+        figure.scroll_into_view_if_needed()
+        page.wait_for_function("(img) => img.complete && img.naturalWidth > 0", arg=figure.element_handle())
+        expect(figure).to_have_attribute("src", re.compile(rf"/outputs/report-{name}\.svg\?exp=\d+&sig="))
+    link = page.get_by_test_id("report-html")
+    expect(link).to_have_attribute("target", "_blank")
+    page.wait_for_load_state("networkidle")
+    _screenshot(page, "quality_pictures")
+    watch.assert_clean(live_service.url)
+
+    with page.context.expect_page() as opened:
+        link.click()
+    report = opened.value
+    report.wait_for_load_state("load")
+    report_requests: list[str] = []
+    report.on("request", lambda request: report_requests.append(request.url))
+    expect(report.locator("h1")).to_have_text("Mosaic quality report")
+    expect(report.locator("figure svg")).to_have_count(4)
+    expect(report.locator("h2", has_text="Photo pairs")).to_be_visible()
+    expect(report.locator("body")).to_contain_text("Finding features")  # stage times, in words
+    assert "detect_features" not in report.locator("body").inner_text()
+    report.reload()
+    report.wait_for_load_state("networkidle")
+    assert all(url.split("?")[0].endswith("/outputs/report.html") for url in report_requests), report_requests
+    ARTIFACTS.mkdir(exist_ok=True)
+    report.screenshot(path=str(ARTIFACTS / "report_html.png"), full_page=True)
+    report.close()
+
+
+def test_the_progress_card_says_the_time_left(signed_in_page, live_service, planar_job) -> None:
+    """A running job's ETA as the API answers it (spliced into the job's record and its event stream): the time
+    left of the job, the running stage's rate and time left, the expected time of the stages to come."""
+    from playwright.sync_api import expect
+
+    page, watch = signed_in_page
+    running = {
+        **planar_job,
+        "status": "running",
+        "stage": "match_features",
+        "progress": 40.0,
+        "progress_detail": "pair 12/30",
+        "timings": {"load_images": 1.2, "detect_features": 3.4},
+        "warnings": None,
+        "eta": {
+            "seconds_left": 95.0,
+            "stage_seconds_left": 35.0,
+            "stages": {
+                "load_images": {"seconds_left": 0, "basis": "done", "unit": None, "units_per_second": None},
+                "detect_features": {"seconds_left": 0, "basis": "done", "unit": None, "units_per_second": None},
+                "match_features": {"seconds_left": 35.0, "basis": "measured", "unit": "pair", "units_per_second": 0.51},
+                "align_frames": {"seconds_left": 6.0, "basis": "history", "unit": None, "units_per_second": None},
+                "georeference": {"seconds_left": 0.1, "basis": "history", "unit": None, "units_per_second": None},
+                "compose_mosaic": {"seconds_left": 50.0, "basis": "history", "unit": None, "units_per_second": None},
+                "write_report": {"seconds_left": 3.9, "basis": "defaults", "unit": None, "units_per_second": None},
+            },
+        },
+    }
+    job_path = re.compile(rf"/api/jobs/{planar_job['id']}$")
+    page.route(job_path, lambda route: route.fulfill(json={**running, "signature": route.fetch().json()["signature"]}))
+    stream = f"retry: 60000\nevent: progress\ndata: {json.dumps(running)}\n\n"
+    page.route(
+        re.compile(rf"/api/jobs/{planar_job['id']}/events"),
+        lambda route: route.fulfill(body=stream, headers={"Content-Type": "text/event-stream"}),
+    )
+    page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
+    expect(page.get_by_test_id("job-eta")).to_have_text("About 1 min 35 s left (this step 35 s)")
+    expect(page.get_by_test_id("stage-meta-match_features")).to_have_text("pair 12/30 · 0.51 pairs/s · 35 s left")
+    expect(page.get_by_test_id("stage-meta-compose_mosaic")).to_have_text("≈ 50 s")
+    expect(page.get_by_test_id("stage-meta-compose_mosaic")).to_have_attribute("title", "time left from earlier jobs")
+    expect(page.get_by_test_id("stage-meta-detect_features")).to_have_text("3.4 s")
+    expect(page.locator('[data-stage="match_features"] .stage-name')).to_have_text("Matching photo pairs")
+    _screenshot(page, "progress_eta")
+    watch.assert_clean(live_service.url)

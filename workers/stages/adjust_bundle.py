@@ -15,6 +15,7 @@ import numpy as np
 
 from workers.algorithms.geometry import Camera, lonlat_to_utm, utm_epsg
 from workers.algorithms.sfm import (
+    IMAGE_STATUSES,
     Attitude,
     GpsFix,
     GroundControlPoint,
@@ -200,7 +201,7 @@ def triangulation_report(
                 "observations": per_frame.get(f.name, {}).get("observations", 0),
                 "gps_residual_m": per_frame.get(f.name, {}).get("gps_residual_m"),
                 "tie_points_offered": per_frame.get(f.name, {}).get("tie_points_offered", 0),
-                "status": per_frame.get(f.name, {}).get("status", "not registered"),
+                "status": per_frame.get(f.name, {}).get("status", IMAGE_STATUSES[2]),
                 "attitude": per_frame.get(f.name, {}).get("attitude"),
             }
             for f in frames

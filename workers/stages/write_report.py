@@ -1,17 +1,23 @@
-"""Stage ``write_report``: ``report.json`` (what was used, how well it fits) and frame footprints."""
+"""Stage ``write_report``: ``report.json`` (what was used, how well it fits), frame footprints, and
+``report.html`` with its pictures (``workers.report_html``)."""
 
 from __future__ import annotations
 
 from typing import Any
 
+import cv2
 import numpy as np
 
-from workers.algorithms.geometry import utm_to_lonlat
-from workers.algorithms.mosaic import apply_homography, frame_corners
+from workers.algorithms.geometry import Camera, lonlat_to_utm, utm_to_lonlat
+from workers.algorithms.mosaic import TiePoints, apply_homography, frame_corners, tie_residuals_px
+from workers.algorithms.sfm import LocalFrame, parse_gcp_file
 from workers.config import MosaicConfig
 from workers.pipeline import pipeline_key, stage_names
 from workers.records import Alignment, Frame, Georef, PairRecord
+from workers.report_html import FigureData, figures, report_page
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
+
+COVERAGE_CELLS = 256  # the overlap map's cells along the mosaic's longer side
 
 
 def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
@@ -66,6 +72,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         report["triangulation"] = ws.load_cameras()["report"]
     report["warnings"] = _warnings(report)
     ws.save_report(report)
+    progress(0.5, "report pictures")
+    data = _figure_data(ws, cfg, frames, align, geo, to_out, report)
+    ws.save_report_html(report_page(report, data, svgs := figures(data), _advice(report, data, cfg)), svgs)
     if geo.georeferenced:
         ws.save_footprints(_footprint_collection(frames, footprints))
     seams = ws.load_seams()
@@ -171,3 +180,174 @@ def _cutline_collection(frames: dict[int, Frame], seams: dict[int, list[np.ndarr
         if k in frames
     ]
     return {"type": "FeatureCollection", "features": features}
+
+
+# -- report.html: what its pictures draw, in mosaic pixels ----------------------------------------------------
+
+
+def _figure_data(
+    ws: JobWorkspace,
+    cfg: MosaicConfig,
+    frames: dict[int, Frame],
+    align: Alignment,
+    geo: Georef,
+    to_out: np.ndarray,
+    report: dict[str, Any],
+) -> FigureData:
+    homs = align.homographies
+    corners = {
+        frames[k].name: apply_homography(to_out @ H, frame_corners(frames[k].width, frames[k].height))
+        for k, H in sorted(homs.items())
+    }
+    data = FigureData(geo.width, geo.height, geo.gsd_m, corners, _coverage(corners, geo.width, geo.height))
+    if cfg.mode == "ortho":
+        _ortho_geometry(ws, frames, align, geo, data, report)
+    else:
+        _planar_geometry(ws, frames, align, to_out, data, geo)
+    if geo.georeferenced and geo.epsg is not None:
+        to_px = np.linalg.inv(np.vstack([np.array(geo.transform).reshape(2, 3), [0, 0, 1]]))
+        for k in homs:
+            if (gps := frames[k].gps) and frames[k].name in data.cameras:
+                en = lonlat_to_utm(np.array([[gps["lon"], gps["lat"]]]), geo.epsg)
+                data.gps[frames[k].name] = apply_homography(to_px, en)[0]
+    return data
+
+
+def _coverage(corners: dict[str, np.ndarray], width: int, height: int) -> np.ndarray:
+    """(gh, gw) uint8: how many footprints cover each cell of a grid over the mosaic."""
+    cell = max(width, height) / COVERAGE_CELLS
+    shape = (max(1, round(height / cell)), max(1, round(width / cell)))
+    counts = np.zeros(shape, np.uint16)
+    for c in corners.values():
+        mask = np.zeros(shape, np.uint8)
+        cv2.fillPoly(mask, [np.round(c / cell - 0.5).astype(np.int32)], 1)
+        counts += mask
+    return np.minimum(counts, 255).astype(np.uint8)
+
+
+def _planar_geometry(
+    ws: JobWorkspace, frames: dict[int, Frame], align: Alignment, to_out: np.ndarray, data: FigureData, geo: Georef
+) -> None:
+    """Camera positions (frame centres), tie points and their misfits, per-photo RMS and GPS residuals."""
+    homs = align.homographies
+    for k, H in sorted(homs.items()):
+        centre = np.array([[(frames[k].width - 1) / 2, (frames[k].height - 1) / 2]])
+        data.cameras[frames[k].name] = apply_homography(to_out @ H, centre)[0]
+    ties = {
+        p.pair: TiePoints(*ws.load_matches(p.pair))
+        for p in ws.load_pairs()
+        if p.accepted and p.i in homs and p.j in homs
+    }
+    misfit = tie_residuals_px(homs, ties)
+    points: list[np.ndarray] = []
+    residuals: list[np.ndarray] = []
+    per_frame: dict[int, list[np.ndarray]] = {k: [] for k in homs}
+    for pair, r in misfit.items():
+        points.append(apply_homography(to_out @ homs[pair[0]], ties[pair].points_i))
+        residuals.append(r)
+        per_frame[pair[0]].append(r)
+        per_frame[pair[1]].append(r)
+    if points:
+        data.ties, data.tie_residuals_px = np.vstack(points), np.concatenate(residuals)
+    data.per_photo = [
+        (
+            frames[k].name,
+            float(np.sqrt(np.mean(np.concatenate(r) ** 2))) if r else None,
+            geo.gps_residuals_m.get(frames[k].name),
+        )
+        for k, r in sorted(per_frame.items())
+    ]
+
+
+def _ortho_geometry(
+    ws: JobWorkspace, frames: dict[int, Frame], align: Alignment, geo: Georef, data: FigureData, report: dict[str, Any]
+) -> None:
+    """Camera centres, tie points traced through the adjusted cameras to the ground plane, ground control points
+    at their known and adjusted positions; per photo, its reprojection RMS and GPS residual."""
+    cameras = ws.load_cameras()
+    world, t = cameras["world"], report["triangulation"]
+    data.per_photo = [(i["name"], i.get("rms_px"), i.get("gps_residual_m")) for i in t.get("images", [])]
+    if world.get("epsg") is None or not geo.georeferenced:
+        return
+    to_px = np.linalg.inv(np.vstack([np.array(geo.transform).reshape(2, 3), [0, 0, 1]]))
+    shift = np.array([world["easting0"], world["northing0"]])
+
+    def local_to_px(xy: np.ndarray) -> np.ndarray:
+        return apply_homography(to_px, np.asarray(xy, np.float64).reshape(-1, 2) + shift)
+
+    camera = Camera.from_json(cameras["camera"])
+    poses = {int(k): (np.array(p["R"]), np.array(p["C"])) for k, p in cameras["poses"].items()}
+    for k, (_, C) in poses.items():
+        data.cameras[frames[k].name] = local_to_px(C[:2])[0]
+    ground: list[np.ndarray] = []
+    for p in ws.load_pairs():
+        if p.accepted and p.i in poses and p.j in poses:
+            R, C = poses[p.i]
+            rays = camera.unproject(ws.load_matches(p.pair)[0]) @ R  # world directions: R^T d
+            depth = (align.ground_z or 0.0) - C[2]
+            ahead = rays[:, 2] * depth > 0
+            ground.append(C[:2] + rays[ahead, :2] * (depth / rays[ahead, 2])[:, None])
+    if ground:
+        data.ties = local_to_px(np.vstack(ground))
+    _gcp_positions(ws, frames, LocalFrame(world["epsg"], *shift), t, local_to_px, data)
+
+
+def _gcp_positions(
+    ws: JobWorkspace, frames: dict[int, Frame], world: LocalFrame, t: dict[str, Any], local_to_px: Any, data: FigureData
+) -> None:
+    path = ws.gcp_file()
+    if path is None:
+        return
+    sizes = {f.name: (f.orig_width, f.orig_height) for f in frames.values()}
+    try:
+        known = {g.id: g.position for g in parse_gcp_file(path.name, path.read_text(encoding="utf-8"), sizes, world)}
+    except (ValueError, OSError):
+        return
+    for entry in t.get("gcps", []):
+        position, error = known.get(entry["id"]), entry.get("error_m")
+        if position is None or not isinstance(error, list) or len(error) < 2:
+            continue
+        at = local_to_px(position[:2])[0]
+        moved = local_to_px(np.asarray(position[:2]) + np.asarray(error[:2], np.float64))[0]
+        data.gcps.append((str(entry["id"]), str(entry["role"]), at, moved))
+
+
+def _advice(report: dict[str, Any], data: FigureData, cfg: MosaicConfig) -> list[str]:
+    """Plain-language notes on what the pictures show: single coverage, photos that fit worse than the rest,
+    GPS misfits beyond the fixes' accuracy and the U-shaped misfit of a strip that bends."""
+    out = []
+    covered = data.coverage > 0
+    single = float((data.coverage[covered] == 1).mean()) if covered.any() else 0.0
+    if single > 0.1:
+        out.append(
+            f"{single * 100:.0f} % of the mosaic is seen by one photo only: nothing checks the alignment "
+            "there. More overlap between the flight lines would."
+        )
+    rms = {name: t for name, t, _ in data.per_photo if t is not None}
+    if len(rms) >= 3:
+        median = float(np.median(list(rms.values())))
+        worse = [n for n, v in rms.items() if v > max(3 * median, 1.0)]
+        if worse:
+            out.append(
+                f"{', '.join(worse[:8])} fit{'s' if len(worse) == 1 else ''} the other photos worse than the "
+                f"rest (tie-point RMS over 3 times the median of {median:.2f} px): look for motion blur, "
+                "moving objects or tall relief in them."
+            )
+    gps = [g for _, _, g in data.per_photo if g is not None]
+    rms_gps = report.get("gps_residual_rms_m")
+    if isinstance(rms_gps, int | float) and rms_gps > 3 * cfg.gps_sigma_m:
+        out.append(
+            f"The cameras lie {rms_gps:.2f} m (RMS) from their GPS fixes, over 3 times the GPS accuracy "
+            f"assumed ({cfg.gps_sigma_m:g} m): check the GPS data and the photos' order."
+        )
+    if len(gps) >= 5:
+        n = max(1, len(gps) // 5)
+        ends, middle = float(np.mean(gps[:n] + gps[-n:])), float(np.min(gps[n:-n] or [np.inf]))
+        if ends > 2 * middle and ends > 0.2:
+            remedy = "Ground control points" if cfg.mode == "ortho" else "Ground control points or ortho mode"
+            out.append(
+                f"The GPS residuals grow toward both ends of the flight ({ends:.2f} m at the ends, "
+                f"{middle:.2f} m in the middle): the model bends away from the GPS track. {remedy} "
+                "would hold it straight."
+            )
+    return out

@@ -25,6 +25,15 @@ from .bundle import (
     triangulate_rays as triangulate_rays,
 )
 from .datum import (
+    DATUMS as DATUMS,
+)
+from .datum import (
+    GCP_ROLES as GCP_ROLES,
+)
+from .datum import (
+    IMAGE_STATUSES as IMAGE_STATUSES,
+)
+from .datum import (
     Attitude as Attitude,
 )
 from .datum import (

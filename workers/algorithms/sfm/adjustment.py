@@ -15,6 +15,9 @@ from workers.algorithms.geometry import Camera, vector_from_rotation
 from workers.algorithms.mosaic import spread_subset
 from workers.algorithms.sfm import bundle
 from workers.algorithms.sfm.datum import (
+    DATUM_FIT,
+    DATUM_LINE,
+    DATUM_NONE,
     GpsFix,
     control_layout,
     line_similarity,
@@ -227,10 +230,10 @@ def to_world(state: ReconstructionState, camera: Camera, priors: Priors, options
                 "GPS fixes and control points too few or too close together for their accuracy: "
                 "arbitrary frame, scale set by the initial baseline = 1"
             )
-        return "none"
+        return DATUM_NONE
     if tri:  # weigh GPS fixes and control points by their accuracy
         weights = np.r_[[priors.gps[f].sigma_h for f in frames], np.full(len(tri), options.gcp_sigma_m)]
         fit = refine_similarity(src, dst, weights, *fit)
     _apply_similarity(state, *fit)
     state.world = True
-    return {"spread": "similarity_to_gps_and_gcps", "line": "gps_line_level_cameras"}[layout]
+    return {"spread": DATUM_FIT, "line": DATUM_LINE}[layout]

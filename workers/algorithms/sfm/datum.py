@@ -17,6 +17,16 @@ from workers.algorithms.geometry import Camera, rotation_from_vector, vector_fro
 from workers.algorithms.sfm.bundle import refine_points, triangulate_rays
 from workers.algorithms.sfm.gcp import GroundControlPoint
 
+# What a reconstruction's report names (core.labels has a display name for each, checked by a test):
+# report["datum"], how the model was put in the world
+DATUM_GPS_ATTITUDE = "gps_attitude"  # cameras seeded from GPS and attitude, settled on the fixes
+DATUM_FIT = "similarity_to_gps_and_gcps"  # a 3D similarity to fixes and control points that spread in 3D
+DATUM_LINE = "gps_line_level_cameras"  # fixes along a line: the line fitted, cameras taken as level
+DATUM_NONE = "none"  # too little control: an arbitrary frame
+DATUMS = (DATUM_GPS_ATTITUDE, DATUM_FIT, DATUM_LINE, DATUM_NONE)
+IMAGE_STATUSES = ("registered", "placed again", "not registered")  # per image
+GCP_ROLES = ("control", "tie", "checkpoint")  # per ground control point
+
 
 # -- GPS fixes and DJI attitude -------------------------------------------------------------------------
 @dataclass(frozen=True)
@@ -214,7 +224,8 @@ def report_gcps(
     report: dict[str, dict] = {}
     positions: dict[str, np.ndarray] = {}
     for g, gcp in enumerate(gcps):
-        role = "checkpoint" if gcp.id in checkpoints else "control" if gcp.position is not None else "tie"
+        control, tie, checkpoint = GCP_ROLES
+        role = checkpoint if gcp.id in checkpoints else control if gcp.position is not None else tie
         entry: dict = {"role": role, "observations": sum(1 for k, f, _ in observations if k == g and registered[f])}
         if role != "checkpoint" and gcp.id in adjusted:
             positions[gcp.id], res = adjusted[gcp.id]

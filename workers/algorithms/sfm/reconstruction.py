@@ -33,6 +33,8 @@ from workers.algorithms.geometry import Camera, vector_from_rotation
 from workers.algorithms.sfm import bundle
 from workers.algorithms.sfm.adjustment import Priors, adjust_state, gcps_triangulated, refine_all_points, to_world
 from workers.algorithms.sfm.datum import (
+    DATUM_GPS_ATTITUDE,
+    IMAGE_STATUSES,
     Attitude,
     GpsFix,
     checkpoint_rmse,
@@ -173,7 +175,7 @@ def reconstruct(
     _complete(state, camera, options)
     if state.world:  # seeded on GPS + attitude: settle the gauge the weak GPS priors leave loose (the fit to GPS)
         to_world(state, camera, priors, options)
-        datum = "gps_attitude"
+        datum = DATUM_GPS_ATTITUDE
     else:
         datum = to_world(state, camera, priors, options)
     camera = _adjust_until_settled(state, camera, options, priors, log)
@@ -201,7 +203,7 @@ def _seed(
     if (options.initial == "attitude" or (options.initial == "auto" and full)) and _seed_attitude(
         state, camera, options, priors, attitude, log
     ):
-        return "gps_attitude"
+        return DATUM_GPS_ATTITUDE
     pair = initial_pair(
         state.pairs,
         state.essential,
@@ -511,7 +513,7 @@ def _per_frame(state: ReconstructionState, priors: Priors, names: list[str], res
             "rms_px": _num(rms_px),
             "observations": count,
             "tie_points_offered": int(offered[f]),
-            "status": "placed again" if f in state.reinitialised else "registered",
+            "status": IMAGE_STATUSES[1] if f in state.reinitialised else IMAGE_STATUSES[0],
         }
         if f in state.attitude:
             entry["attitude"] = state.attitude[f]
