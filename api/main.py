@@ -11,7 +11,7 @@ from api.errors import install_error_handlers
 from api.limits import JsonBodyLimits, RequestLimits
 from api.queue import CeleryQueue, JobQueue
 from api.reaper import lifespan
-from api.routes import calibrations, crack_surveys, flights, jobs, tiles, users, web
+from api.routes import calibrations, crack_surveys, flights, jobs, stereo_dems, tiles, users, web
 from api.tiler import Tiler
 from core.accounts import TokenCache
 from core.db import Database
@@ -50,7 +50,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         BearerForWrites, tokens=app.state.tokens
     )  # an anonymous write is refused before its body is read
     app.add_middleware(TrustedHosts, allowed=settings.allowed_hosts)  # outermost: before anything is read
-    for module in (flights, jobs, calibrations, crack_surveys, tiles):
+    for module in (flights, jobs, calibrations, crack_surveys, stereo_dems, tiles):
         app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own
     app.include_router(users.router)  # its routes say who may call them
     app.include_router(web.router)  # viewer, health and configuration: open

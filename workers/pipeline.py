@@ -66,6 +66,12 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("compare_stages", 5),
         StageSpec("write_crack_report", 10),
     ),
+    JobKind.stereo_dem: (
+        StageSpec("rectify_pair", 15),
+        StageSpec("compute_disparity", 50),
+        StageSpec("build_dsm", 30),
+        StageSpec("write_stereo_report", 5),
+    ),
 }
 # The option of a kind that selects a variant pipeline, and its default.
 VARIANT_OPTIONS: dict[str, tuple[str, str]] = {

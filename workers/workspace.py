@@ -80,6 +80,17 @@ _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
 _FOOTPRINTS = "footprints.geojson"
 _CRACKS_GEOJSON = "cracks.geojson"
+# stereo DEM jobs
+_RECTIFICATION = "rectification.json"
+_RECTIFIED = "work/rectified.npz"
+_DISPARITY_ARRAYS = "work/disparity.npz"
+_DISPARITY = "disparity.tif"
+_CONFIDENCE = "confidence.tif"
+_DEPTH = "depth.tif"
+_DSM = "dsm.tif"
+_DSM_MASK = "dsm_mask.tif"
+_DSM_VIEW = "view/dsm.tif"
+_DISPARITY_VIEW = "view/disparity.tif"
 
 
 def _measured_cracks_name(step: int) -> str:
@@ -391,6 +402,68 @@ class JobWorkspace:
         with atomic_path(self.root / _CRACKS_CSV) as tmp:
             tmp.write_text(text)
 
+    # -- stereo DEM jobs ---------------------------------------------------------------------------
+    def load_rectification(self) -> dict[str, Any]:
+        """How the pair was rectified, its disparity range and geometry (``rectify_pair``)."""
+        return dict(self._json(_RECTIFICATION))
+
+    def save_rectification(self, rectification: dict[str, Any]) -> None:
+        self._save_json(_RECTIFICATION, rectification)
+
+    def save_rectified_pair(
+        self, left: np.ndarray, right: np.ndarray, valid_left: np.ndarray, valid_right: np.ndarray
+    ) -> None:
+        """The rectified pair, uint8 (H, W) or (H, W, 3), and the (H, W) bool pixels each photo covers."""
+        _save_npz(self.root / _RECTIFIED, left=left, right=right, valid_left=valid_left, valid_right=valid_right)
+
+    def load_rectified_pair(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(left, right, valid_left, valid_right)`` as ``save_rectified_pair`` saved them."""
+        with np.load(self.root / _RECTIFIED) as data:
+            return data["left"], data["right"], data["valid_left"], data["valid_right"]
+
+    def save_disparity_arrays(
+        self, disparity: np.ndarray, dense: np.ndarray, filled: np.ndarray, confidence: np.ndarray
+    ) -> None:
+        """The matcher's maps (``disparity.Disparity``'s fields), left rectified view, px."""
+        _save_npz(self.root / _DISPARITY_ARRAYS, disparity=disparity, dense=dense, filled=filled, confidence=confidence)
+
+    def load_disparity_arrays(self) -> dict[str, np.ndarray]:
+        """``disparity``, ``dense``, ``filled``, ``confidence`` (H, W) as ``save_disparity_arrays`` saved them."""
+        with np.load(self.root / _DISPARITY_ARRAYS) as data:
+            return {name: data[name] for name in ("disparity", "dense", "filled", "confidence")}
+
+    def disparity_path(self) -> Path:
+        """The left view's disparity, float32 px, NaN where none (an output)."""
+        return self.root / _DISPARITY
+
+    def confidence_path(self) -> Path:
+        """Per pixel of ``disparity.tif`` how far it is trusted, 0 where filled or none (an output)."""
+        return self.root / _CONFIDENCE
+
+    def depth_path(self) -> Path:
+        """A rig pair's depth in the rectified left camera, the rig's units (an output)."""
+        return self.root / _DEPTH
+
+    def dsm_path(self) -> Path:
+        """The DSM COG, float32 metres (an output, read by the point route)."""
+        return self.root / _DSM
+
+    def dsm_mask_path(self) -> Path:
+        """Per DSM cell: 0 no data, 1 measured, 2 filled (an output)."""
+        return self.root / _DSM_MASK
+
+    def dsm_view_path(self) -> Path:
+        """The DSM as colour-ramped, hillshaded RGB COG (read by the tile routes)."""
+        return self.root / _DSM_VIEW
+
+    def disparity_view_path(self) -> Path:
+        """The disparity as colour-ramped RGB COG in the left view's pixels (read by the tile routes)."""
+        return self.root / _DISPARITY_VIEW
+
+    def view_scratch_path(self, name: str) -> Path:
+        """Scratch GeoTIFF of a view COG before it is translated (``name``: "dsm" or "disparity")."""
+        return self.root / "view" / f"{name}.tmp.tif"
+
     # -- outputs --------------------------------------------------------------------------------
     def mosaic_path(self) -> Path:
         """The mosaic COG (an output, read by the tile routes)."""
@@ -475,9 +548,22 @@ class JobWorkspace:
                 r / _CRACKS_CSV,
                 *(self.load_step_cog_path(s) for s in steps()),
             ],
+            "rectify_pair": lambda: [r / _RECTIFICATION, r / _RECTIFIED],
+            "compute_disparity": lambda: [r / _DISPARITY_ARRAYS, r / _DISPARITY, r / _CONFIDENCE, r / _DISPARITY_VIEW],
+            "build_dsm": lambda: self._surface_outputs(),
+            "write_stereo_report": lambda: [r / _REPORT],
         }
         listed = outputs.get(stage)
         return listed() if listed is not None else []
+
+    def _surface_outputs(self) -> list[Path]:
+        """What ``build_dsm`` writes for the pair's geometry: a DSM (rpc), a depth map (rig) or nothing more."""
+        geometry = self.load_rectification()["geometry"]
+        if geometry == "rpc":
+            return [self.dsm_path(), self.dsm_mask_path(), self.dsm_view_path()]
+        if geometry == "rig":
+            return [self.depth_path()]
+        return [self.root / _RECTIFICATION]
 
     def forget_stage_report(self, stage: str) -> None:
         """Make pipeline stage ``stage`` run again on the next delivery (its report marks it done)."""
@@ -494,6 +580,11 @@ class JobWorkspace:
             _CAMERAS,
             _CRACKS_GEOJSON,
             _CRACKS_CSV,
+            _DSM,
+            _DSM_MASK,
+            _DISPARITY,
+            _CONFIDENCE,
+            _DEPTH,
         ]
         named = {name: self.root / name for name in names}
         for path in sorted([*self.root.glob("stage_*_rectified.tif"), *self.root.glob("stage_*_overlay.png")]):
