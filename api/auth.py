@@ -33,7 +33,7 @@ READ_METHODS = frozenset({"GET", "HEAD"})
 # The reads a signed URL opens: what image tags, links and EventSource fetch. Not the job's JSON, its outputs
 # listing or its TileJSON, which hand out fresh signatures: those need the token, so a signed link cannot
 # renew itself past its expiry or its owner's revoked token.
-SIGNED_ROUTES = frozenset({"tile", "load_step_tile", "stage_tile", "download_output", "job_events"})
+SIGNED_ROUTES = frozenset({"tile", "load_step_tile", "stage_tile", "stereo_tile", "download_output", "job_events"})
 _AS_INT = TypeAdapter(int)
 
 

@@ -85,7 +85,7 @@ class RpcPair:
             seen &= (row >= margin_px) & (row <= view.height - 1 - margin_px)
             towards = view.C - np.stack([e, n, h], axis=-1)
             towards /= towards[..., 2:3]  # per metre of height
-            for rise in np.arange(0.5, 3.0 * self.relief_m, 0.5):  # march up the ray, past the highest hill
+            for rise in np.arange(1.0, 2.0 * self.relief_m, 1.0):  # march up the ray, past the highest hill
                 p = np.stack([e, n, h], axis=-1) + rise * towards
                 seen &= p[..., 2] >= self.height(p[..., 0], p[..., 1]) - 1e-6
         return seen

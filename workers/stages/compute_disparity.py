@@ -14,7 +14,7 @@ import numpy as np
 
 from gpu_kernels.backend import resolve_device
 from workers.algorithms.disparity import match_pair
-from workers.algorithms.stereo import DISPARITY, Rectification, colour_ramp, value_range
+from workers.algorithms.stereo import DISPARITY, Rectification, colour_ramp, legend, value_range
 from workers.config import StereoDemConfig
 from workers.raster_io import write_array_cog, write_rgb_cog
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -67,5 +67,5 @@ def run(ws: JobWorkspace, cfg: StereoDemConfig, *, progress: ProgressFn = noop_p
         "filled_share": round(int(result.filled.sum()) / max(inside, 1), 4),
         "match_seconds": round(seconds, 3),
         "seconds_per_megapixel": round(seconds / max(left.shape[0] * left.shape[1] / 1e6, 1e-9), 3),
-        "view_range_px": [lo, hi],
+        "legend": {"units": "px", "stops": legend(lo, hi, DISPARITY)},
     }

@@ -18,7 +18,6 @@ def run(ws: JobWorkspace, cfg: StereoDemConfig, *, progress: ProgressFn = noop_p
     disparity = ws.load_stage_report("compute_disparity") or {}
     surface = ws.load_stage_report("build_dsm") or {}
     info = ws.load_rectification()
-    legend_px = disparity.get("view_range_px")
     report = {
         "kind": "stereo_dem",
         "geometry": info["geometry"],
@@ -40,7 +39,7 @@ def run(ws: JobWorkspace, cfg: StereoDemConfig, *, progress: ProgressFn = noop_p
             "filled_share": disparity.get("filled_share"),
             "device": disparity.get("device"),
             "seconds_per_megapixel": disparity.get("seconds_per_megapixel"),
-            "view_range_px": legend_px,
+            "legend": disparity.get("legend"),
         },
         "surface": {k: v for k, v in surface.items() if k != "wall_seconds"},
         "outputs": sorted(ws.outputs()),

@@ -4,8 +4,9 @@ Each point is splatted onto the four cell centres around it with bilinear weight
 weighted mean of what reached it: a cell is *measured* when points from checked disparities give it at least
 ``min_weight`` (a quarter of a point by default), else *filled* when points from filled disparities (an
 occlusion or a rejected match, filled from the background side) do. Cells no point reaches, inside the
-footprint of the points, are filled (with ``fill``) by normalised Gaussian convolution from the cells around
-them, up to ``max_fill_cells`` away, and flagged filled too. Nothing outside the footprint is invented.
+footprint of the points, are filled (with ``fill``) by linear interpolation between the cells around them
+(normalised Gaussian convolution where a hole is open to the footprint's edge), up to ``max_fill_cells``
+away, and flagged filled too. Nothing outside the footprint is invented.
 
 Grid convention: rasterio's affine (a, b, c, d, e, f), north up, ``resolution`` m square cells whose corners
 sit on multiples of the resolution; cell (row, col) has its centre at
@@ -18,6 +19,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import QhullError
 
 NO_DATA, MEASURED, FILLED = 0, 1, 2  # values of ``Dsm.state``
 MAX_CELLS = 200_000_000  # a grid larger than this is refused (a wrong resolution or a runaway point)
@@ -120,16 +123,39 @@ def _footprint(fx: np.ndarray, fy: np.ndarray, shape: tuple[int, int]) -> np.nda
 def _fill_holes(
     values: np.ndarray, state: np.ndarray, footprint: np.ndarray, max_cells: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised Gaussian convolution at doubling widths until the holes within ``max_cells`` are filled."""
+    """Holes within ``max_cells`` of a height: linear interpolation over a Delaunay triangulation of the cells
+    around them (exact on a plane), and what that cannot reach (a hole open to the footprint's edge) by
+    normalised Gaussian convolution at doubling widths."""
     known = state != NO_DATA
     holes = footprint & ~known
     if not holes.any() or not known.any():
         return values, state
     reach = cv2.distanceTransform((~known).astype(np.uint8), cv2.DIST_L2, 5)
     holes &= reach <= max_cells
-    data = np.where(known, values, 0.0).astype(np.float32)
-    weight = known.astype(np.float32)
     out, new_state = values.copy(), state.copy()
+    ring = known & (cv2.dilate(holes.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=2) > 0)
+    rows, cols = np.nonzero(holes)
+    ring_rows, ring_cols = np.nonzero(ring)
+    if len(ring_rows) >= 3 and len(rows):
+        try:
+            linear = LinearNDInterpolator(np.column_stack([ring_cols, ring_rows]), values[ring_rows, ring_cols])
+            inside = linear(np.column_stack([cols, rows]))
+        except QhullError:  # the ring's cells on one line: no triangles
+            inside = np.full(len(rows), np.nan)
+        done = np.isfinite(inside)
+        out[rows[done], cols[done]] = inside[done]
+        new_state[rows[done], cols[done]] = FILLED
+        holes[rows[done], cols[done]] = False
+    return _convolve_fill(out, new_state, known, holes, max_cells)
+
+
+def _convolve_fill(
+    out: np.ndarray, state: np.ndarray, known: np.ndarray, holes: np.ndarray, max_cells: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised Gaussian convolution of the known cells at doubling widths until ``holes`` are filled."""
+    data = np.where(known, out, 0.0).astype(np.float32)
+    weight = known.astype(np.float32)
+    new_state = state
     sigma = 1.0
     left = holes.copy()
     while left.any() and sigma <= 2 * max_cells:
