@@ -103,6 +103,9 @@ class MosaicConfig(BaseModel):
     outlier_px: float = Field(4.0, gt=0.0, le=100.0)  # observations beyond this after a first solve are dropped
     # ortho plane height, m (the GPS altitudes' datum); None: median height of the tie points
     ground_elevation_m: float | None = Field(None, ge=-1000.0, le=10000.0)
+    # what frames are projected onto: tie_points, a surface gridded and smoothed from the adjusted tie points
+    # (relief displacement removed); plane, the plane at ground_elevation_m (the former behaviour)
+    ortho_surface: Literal["tie_points", "plane"] = "tie_points"
     max_ground_range: float = Field(4.0, gt=0.0, le=100.0)  # ortho: clip frames to this many flying heights
 
     @model_validator(mode="after")

@@ -73,6 +73,7 @@ _CUTLINES = "cutlines.geojson"
 _CORNERS = "corners.json"
 _CALIBRATION = "calibration.json"
 _CAMERAS = "cameras.json"
+_TIE_POINTS = "tie_points.npz"
 _ORIENTATION = "orientation.json"
 _COMPARISON = "comparison.json"
 _REPORT = "report.json"
@@ -302,6 +303,15 @@ class JobWorkspace:
     def save_cameras(self, cameras: dict[str, Any]) -> None:
         self._save_json(_CAMERAS, cameras)
 
+    def save_tie_points(self, points: np.ndarray) -> None:
+        """The adjusted tie points, (N, 3) float64 in the job's world frame (``adjust_bundle``)."""
+        _save_npz(self.root / _TIE_POINTS, points=np.asarray(points, np.float64).reshape(-1, 3))
+
+    def load_tie_points(self) -> np.ndarray:
+        """(N, 3) float64 world points ``adjust_bundle`` saved."""
+        with np.load(self.root / _TIE_POINTS) as data:
+            return np.asarray(data["points"])
+
     def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"
 
@@ -527,7 +537,7 @@ class JobWorkspace:
             ],
             "align_frames": lambda: [r / _ALIGNMENT],
             "georeference": lambda: [r / _GEOREF],
-            "adjust_bundle": lambda: [r / _CAMERAS],
+            "adjust_bundle": lambda: [r / _CAMERAS, r / _TIE_POINTS],
             "orthorectify_frames": lambda: [
                 r / _GEOREF,
                 *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
