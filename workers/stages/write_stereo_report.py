@@ -42,7 +42,7 @@ def run(ws: JobWorkspace, cfg: StereoDemConfig, *, progress: ProgressFn = noop_p
             "legend": disparity.get("legend"),
         },
         "surface": {k: v for k, v in surface.items() if k != "wall_seconds"},
-        "outputs": sorted(ws.outputs()),
+        "outputs": sorted({*ws.outputs(), "report.json"}),
         "warnings": _warnings(rectified, disparity, surface),
     }
     ws.save_report(report)
