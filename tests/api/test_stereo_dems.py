@@ -22,6 +22,7 @@ from rasterio.io import MemoryFile
 from api import stereo_dem_service
 from core.db import Database, Job
 from core.kinds import JobKind, JobStatus
+from tests.conftest import user_headers
 from tests.stereo_scenes import RpcPair, make_rectified_pair, make_rpc_pair
 from workers.algorithms.calibration import StereoRig
 from workers.algorithms.geometry import Camera
@@ -164,6 +165,16 @@ def test_a_rig_job_lends_its_rig(client: TestClient, api_settings: Any) -> None:
     config = job_workspace(api_settings.data_dir, response.json()["id"]).load_config()
     assert config["geometry"] == "rig" and StereoRig.from_json(config["rig"]).baseline == 100.0
     assert response.json()["options"] == {"rig_job": rig_id}  # the request as it was sent
+
+
+def test_someone_elses_rig_job_is_unknown(client: TestClient, api_settings: Any) -> None:
+    left, right, _ = make_rectified_pair(seed=5, size=(200, 120))
+    rig_id = seed_rig_job(api_settings, JobStatus.succeeded, Camera(200, 120, 150.0, 150.0, 99.5, 59.5))
+    options = {"options": json.dumps({"rig_job": rig_id})}
+    response = client.post(
+        "/api/stereo-dems", files=png_files(left, right), data=options, headers=user_headers(client, "bob")
+    )
+    assert response.status_code == 422 and f"there is no stereo-rig job {rig_id}" in response.json()["detail"]
 
 
 def _refusals(api_settings: Any) -> list[tuple[list[Any], dict[str, Any] | str, str]]:
