@@ -34,7 +34,7 @@ READ_METHODS = frozenset({"GET", "HEAD"})
 # listing or its TileJSON, which hand out fresh signatures: those need the token, so a signed link cannot
 # renew itself past its expiry or its owner's revoked token.
 SIGNED_ROUTES = frozenset(
-    {"tile", "load_step_tile", "stage_tile", "download_output", "job_events", "tms_tile", "tms_tile_png"}
+    {"tile", "load_step_tile", "stage_tile", "stereo_tile", "download_output", "job_events", "tms_tile", "tms_tile_png"}
     | {"download_all", "wmts_capabilities", "stac_item"}
 )
 # Of those, the answers that carry links (a WMTS layer's tile template, a STAC item's assets): opened by a signed

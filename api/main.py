@@ -12,7 +12,19 @@ from api.folder_import import ImportRunner
 from api.limits import JsonBodyLimits, RequestLimits
 from api.queue import CeleryQueue, JobQueue
 from api.reaper import lifespan
-from api.routes import calibrations, crack_surveys, flights, imports, jobs, nodeodm, tiles, uploads, users, web
+from api.routes import (
+    calibrations,
+    crack_surveys,
+    flights,
+    imports,
+    jobs,
+    nodeodm,
+    stereo_dems,
+    tiles,
+    uploads,
+    users,
+    web,
+)
 from api.routes.uploads import TusMethodOverride
 from api.tiler import Tiler
 from core.accounts import TokenCache
@@ -55,7 +67,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     )  # an anonymous write is refused before its body is read
     app.add_middleware(TrustedHosts, allowed=settings.allowed_hosts)  # before anything is read
     app.add_middleware(TusMethodOverride)  # outermost: a tus POST that says it is a PATCH is one for all the rest
-    for module in (flights, uploads, imports, jobs, calibrations, crack_surveys, tiles):
+    for module in (flights, uploads, imports, jobs, calibrations, crack_surveys, stereo_dems, tiles):
         app.include_router(module.router, dependencies=[Depends(authorize)])  # a token, and only one's own
     app.include_router(users.router)  # its routes say who may call them
     app.include_router(nodeodm.router)  # WebODM's processing-node API: a token as ?token=, owner checks by task

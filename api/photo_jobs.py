@@ -55,7 +55,8 @@ async def record_photo_job(
     """Stage and validate the photos, ``check`` their frames (raise ``InvalidInputError``), then record the
     job with its photos in its own folder and queue it; a failed request leaves nothing behind.
 
-    Frames are ``{"name", "side", "pair", "width", "height"}``, and ``"path"`` once stored.
+    Frames are ``{"name", "side", "pair", "width", "height"}`` (and ``"rpc": true`` for a GeoTIFF with RPC
+    metadata), and ``"path"`` once stored.
     ``attachments`` are other files of the job, already checked: path inside its folder -> content.
     ``owner_id`` is the user the job belongs to.
     """
@@ -97,6 +98,8 @@ def _frames(staged: dict[str, list[StagedFile]]) -> list[dict[str, Any]]:
                     "pair": n,
                     "width": item.meta["width"],
                     "height": item.meta["height"],
+                    # a GeoTIFF with a rational polynomial camera model (stereo DEMs use it)
+                    **({"rpc": True} if item.meta.get("rpc") else {}),
                 }
             )
     return frames

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import rasterio
+import rasterio.warp
 import rio_tiler
 from morecantile import Tile
 from rio_tiler.constants import WGS84_CRS
@@ -148,6 +149,24 @@ class _OpenCog:
         west, south, east, north = self.reader.get_geographic_bounds(WGS84_CRS)
         t_west, t_south, t_east, t_north = self.reader.tms.bounds(Tile(x, y, z))
         return bool(t_west < east and t_east > west and t_south < north and t_north > south)
+
+
+def sample_dataset(dataset: Any, x: float, y: float, lonlat: bool) -> float | None:
+    """``Tiler.sample`` on an open rasterio dataset."""
+    if lonlat:
+        if dataset.crs is None:
+            return None
+        xs, ys = rasterio.warp.transform(WGS84_CRS, dataset.crs, [x], [y])
+        row, col = dataset.index(xs[0], ys[0])
+    else:
+        col, row = int(np.floor(x)), int(np.floor(y))
+    if not (0 <= row < dataset.height and 0 <= col < dataset.width):
+        return None
+    value = dataset.read(1, window=((row, row + 1), (col, col + 1)))[0, 0]
+    nodata = dataset.nodata
+    if not np.isfinite(value) or (nodata is not None and (value == nodata or (np.isnan(nodata) and np.isnan(value)))):
+        return None
+    return float(value)
 
 
 @lru_cache(maxsize=1)
@@ -352,6 +371,12 @@ class Tiler:
                 return cog.render(z, x, y)
             except TileNotFoundError as missing:
                 return missing.off_grid
+
+    def sample(self, identity: CogIdentity, x: float, y: float, lonlat: bool) -> float | None:
+        """The first band's value at a point of that COG version: lon/lat degrees (``lonlat``, a raster with a
+        CRS) or the raster's own pixel column and row (x, y); None outside it or on its nodata value."""
+        with self.readers.borrow(identity) as (cog, _):
+            return sample_dataset(cog.dataset, x, y, lonlat)
 
     def info(self, identity: CogIdentity) -> CogInfo:
         with self.readers.borrow(identity) as (cog, pool):

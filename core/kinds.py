@@ -14,6 +14,7 @@ class JobKind(enum.StrEnum):
     calibration = "calibration"
     stereo_calibration = "stereo_calibration"
     crack_survey = "crack_survey"
+    stereo_dem = "stereo_dem"
 
 
 class JobStatus(enum.StrEnum):

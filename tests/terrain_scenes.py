@@ -12,6 +12,7 @@ World frame: x east, y north, z up, metres, origin at the texture centre on the 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -192,6 +193,20 @@ def level_ground_colour_error(flight: TerrainFlight, mosaic: Path, z0: float) ->
     """Mean colour difference (levels) between an orthomosaic and the texture at each pixel's map position,
     where the terrain is within 0.15 m of the ortho plane ``z0`` (elsewhere relief displaces the ground), and
     how many such pixels there are, away from the mosaic's edges."""
+    return ground_colour_error(flight, mosaic, lambda height: np.abs(height - z0) < 0.15)
+
+
+def relief_colour_error(flight: TerrainFlight, mosaic: Path, z0: float, off_m: float = 1.0) -> tuple[float, int]:
+    """The same where the terrain is more than ``off_m`` above or below the plane ``z0``: the hills and
+    hollows, which an orthomosaic projected onto that plane shows displaced by their relief."""
+    return ground_colour_error(flight, mosaic, lambda height: np.abs(height - z0) > off_m)
+
+
+def ground_colour_error(
+    flight: TerrainFlight, mosaic: Path, where: Callable[[np.ndarray], np.ndarray]
+) -> tuple[float, int]:
+    """Mean colour difference (levels) between an orthomosaic and the texture at each pixel's map position over
+    the ground whose true height ``where`` selects, away from the mosaic's edges, and how many pixels that is."""
     with rasterio.open(mosaic) as src:
         assert src.crs.to_epsg() == flight.epsg
         rgb = np.moveaxis(src.read(), 0, 2).astype(np.float32)
@@ -207,6 +222,6 @@ def level_ground_colour_error(flight: TerrainFlight, mosaic: Path, z0: float) ->
         row.reshape(rows.shape).astype(np.float32),
         cv2.INTER_LINEAR,
     )[..., ::-1].astype(np.float32)
-    level = (np.abs(flight.height(x, y) - z0) < 0.15).reshape(rows.shape)
-    inner = (cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & level
+    chosen = where(flight.height(x, y)).reshape(rows.shape)
+    inner = (cv2.erode(mask.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & chosen
     return float(np.abs(rgb - expected)[inner].mean()), int(inner.sum())

@@ -6,7 +6,7 @@
  * aborted when the route changes: that aborts the view's requests (`api(..., { signal })`) and runs the
  * cleanups registered on it (event stream, map, timers, upload: `onAbort`); after each await a view checks
  * `view.signal.aborted` so a slow answer never draws over the next page. The pages are ES modules
- * (flights.js, flight.js, job.js, result-map.js, crack-survey.js, crack-survey-new.js with
+ * (flights.js, flight.js, job.js, result-map.js, stereo-dem.js, crack-survey.js, crack-survey-new.js with
  * crack-survey-specimen.js, mesh.js and mesh-plan.js, over lib.js and kinds.js); Leaflet is the classic
  * script loaded before them and used as the global `L`.
  *

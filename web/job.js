@@ -24,6 +24,7 @@ import { JobKind, JobStatus } from "./kinds.js";
 import { label } from "./labels.js";
 import { showQuality } from "./quality.js";
 import { showResult } from "./result-map.js";
+import { showStereoDem } from "./stereo-dem.js";
 
 // -- Job page ------------------------------------------------------------------------------------
 
@@ -35,20 +36,22 @@ export async function renderJob(view, root, jobId) {
     window.location.replace(`#/crack-surveys/${jobId}`); // its own page: map of the specimen, crack table
     return;
   }
-  // Calibration jobs belong to no flight: no flight to name, no tiles to show.
-  const calibration = CALIBRATION_KINDS.has(job.kind) || job.flight_id === null;
-  const flight = calibration ? null : await api("GET", `/api/flights/${job.flight_id}`, { signal }).catch(() => null);
+  // Calibration and stereo DEM jobs belong to no flight: no flight to name; a stereo DEM has its own map.
+  const stereo = job.kind === JobKind.STEREO_DEM;
+  const calibration = !stereo && (CALIBRATION_KINDS.has(job.kind) || job.flight_id === null);
+  const flight = calibration || stereo ? null : await api("GET", `/api/flights/${job.flight_id}`, { signal }).catch(() => null);
   if (signal.aborted) return;
   const result = h("section", { class: "card result", "aria-labelledby": "result-heading", hidden: true });
   const quality = h("section", { class: "card quality", "aria-labelledby": "quality-heading", "data-testid": "quality", hidden: true });
   const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
   renderJobPage(view, root, job, {
-    crumbs: calibration
-      ? [["Calibrations"], [`Job #${jobId}`]]
-      : [["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]],
-    cards: [result, quality],
-    listHref: calibration ? "#/" : `#/flights/${job.flight_id}`,
-    onSucceeded: (done) => showOutcome(view, done, result, quality, calibration),
+    crumbs: stereo ? [["Stereo DEMs"], [`Job #${jobId}`]]
+      : calibration ? [["Calibrations"], [`Job #${jobId}`]]
+        : [["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]],
+    cards: stereo ? [result] : [result, quality],
+    listHref: calibration || stereo ? "#/" : `#/flights/${job.flight_id}`,
+    onSucceeded: (done) => (stereo ? showStereoDem(view, done, result).catch(showLoadError(view, result, "result"))
+      : showOutcome(view, done, result, quality, calibration)),
   });
 }
 
@@ -264,6 +267,7 @@ const READY = {
   [JobKind.CALIBRATION]: "the camera is calibrated",
   [JobKind.STEREO_CALIBRATION]: "the rig is calibrated",
   [JobKind.CRACK_SURVEY]: "the cracks are measured",
+  [JobKind.STEREO_DEM]: "the surface is ready",
 };
 
 // The state of a pipeline stage (its row's class `stage-<state>` and its text); running, failed and cancelled as the job's.

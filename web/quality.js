@@ -84,6 +84,7 @@ function qualityBody(report) {
     reasons("Rejected frames", rejected, "frames-rejected", "No frame was rejected."),
   ];
   if (report.triangulation && typeof report.triangulation === "object") nodes.push(triangulationSection(report.triangulation));
+  if (report.ortho_surface && typeof report.ortho_surface === "object") nodes.push(surfaceFacts(report.ortho_surface));
   return nodes;
 }
 
@@ -152,6 +153,19 @@ function triangulationSection(t) {
       empty: "No ground control points were used.",
     }),
   );
+}
+
+/** What an ortho mosaic's frames were projected onto: the tie points' surface (its cell and heights) or a plane. */
+function surfaceFacts(surface) {
+  const tie = surface.kind === "tie_points";
+  const range = Array.isArray(surface.height_range_m) ? surface.height_range_m : [];
+  return h("div", { class: "quality-block", "data-testid": "ortho-surface" }, h("h3", {}, "Ortho surface"),
+    factList([
+      ["Projected onto", tie ? "a surface gridded from the tie points" : "one plane", { "data-testid": "ortho-surface-kind" }],
+      tie ? ["Tie points, cell", `${formatCount(surface.points)} points, ${formatMetres(surface.cell_m)} cells`]
+        : ["Why", typeof surface.why === "string" ? surface.why : "–"],
+      tie ? ["Heights", `${formatNumber(range[0], 2, "m")} to ${formatNumber(range[1], 2, "m")}`] : null,
+    ].filter(Boolean), { class: "facts wide" }));
 }
 
 function errorVector(v) {

@@ -1,5 +1,6 @@
 """Every job kind's parameters: one typed, validated model per kind (``JOB_KINDS``: mosaic, calibration,
-stereo calibration, crack survey), every field with a default; ``build_config`` merges a job's options on top.
+stereo calibration, crack survey, stereo DEM), every field with a default; ``build_config`` merges a job's
+options on top.
 
 This module imports only pydantic (and ``core.kinds``) so that the API can validate a job's options
 without loading OpenCV or the stage code.
@@ -115,6 +116,9 @@ class MosaicConfig(BaseModel):
     outlier_px: float = Field(4.0, gt=0.0, le=100.0)  # observations beyond this after a first solve are dropped
     # ortho plane height, m (the GPS altitudes' datum); None: median height of the tie points
     ground_elevation_m: float | None = Field(None, ge=-1000.0, le=10000.0)
+    # what frames are projected onto: tie_points, a surface gridded and smoothed from the adjusted tie points
+    # (relief displacement removed); plane, the plane at ground_elevation_m (the former behaviour)
+    ortho_surface: Literal["tie_points", "plane"] = "tie_points"
     max_ground_range: float = Field(4.0, gt=0.0, le=100.0)  # ortho: clip frames to this many flying heights
 
     @model_validator(mode="after")
@@ -381,6 +385,69 @@ def _collinear(model: list[tuple[float, float, float]]) -> bool:
     return off <= 1e-3 * span
 
 
+MAX_DISPARITY_PX = 4096  # |disparity| of a stereo pair, px
+MAX_STEREO_PIXELS = 40_000_000  # each photo of a stereo DEM; larger pairs are cut to the area of interest first
+Height = Annotated[float, Field(ge=-1000.0, le=10000.0)]  # a ground height, m above the ellipsoid
+
+
+class StereoDemConfig(BaseModel):
+    """Options of a ``stereo_dem`` job: a disparity map of two photos of the same ground and, when they are
+    georeferenced (RPCs), a DSM."""
+
+    model_config = OPTIONS
+
+    # how the pair's geometry is known. rectified: rows are already epipolar lines; rig: a calibrated stereo
+    # rig took it (rig_job); uncalibrated: from a fundamental matrix of matched features; rpc: both photos are
+    # GeoTIFFs with RPC metadata (satellite products). auto: rig when rig_job is given, rectified when
+    # rectified is true, rpc when both photos carry RPCs, uncalibrated otherwise (the API decides)
+    geometry: Literal["auto", "rectified", "rig", "uncalibrated", "rpc"] = "auto"
+    rectified: bool = False  # the photos are rectified already: geometry "rectified"
+    rig_job: int | None = Field(None, ge=1, le=MAX_ID)  # a finished stereo-rig job whose rig took the pair
+    rig: dict[str, Any] | None = None  # the rig (StereoRig JSON); the API copies it from rig_job
+    # sgbm: OpenCV's semi-global matcher, tuned, with our checks; local: the source work's windowed 2-D search
+    # with a soft epipolar constraint (gpu_kernels.stereo_local), on CUDA where device allows
+    method: Literal["sgbm", "local"] = "sgbm"
+    device: Literal["auto", "cpu", "cuda"] = "auto"  # where the local method runs; auto: CUDA when present
+    # disparities searched, d = x_left - x_right in rectified px: [min_disparity, min_disparity + num_disparities);
+    # None: from SIFT matches of the rectified pair (and, for rpc, the heights its RPCs allow)
+    min_disparity: int | None = Field(None, ge=-MAX_DISPARITY_PX, le=MAX_DISPARITY_PX)
+    num_disparities: int | None = Field(None, ge=16, le=1024)
+    fill: bool = True  # fill occlusions and rejected matches from the background side, and DSM holes (flagged)
+    # rpc: lowest and highest ground height, m above the ellipsoid; None: the RPCs' own validity range
+    height_range_m: tuple[Height, Height] | None = None
+    dsm_resolution_m: float | None = Field(None, ge=0.01, le=1000.0)  # DSM cell size, m; None: the left photo's GSD
+    # DSM holes are filled this far at most from a cell with a height, m; None: 64 cells
+    max_fill_m: float | None = Field(None, gt=0.0, le=100000.0)
+    cog_compression: Literal["deflate", "lzw"] = "deflate"  # codec of the output COGs
+
+    @model_validator(mode="after")
+    def _one_geometry(self) -> StereoDemConfig:
+        if self.rectified and self.geometry not in ("auto", "rectified"):
+            raise ValueError(f"rectified: true contradicts geometry {self.geometry!r}")
+        if self.rig_job is not None and self.geometry not in ("auto", "rig"):
+            raise ValueError(f"rig_job is for geometry 'rig', not {self.geometry!r}")
+        if self.rectified and self.rig_job is not None:
+            raise ValueError("give rectified: true or rig_job, not both")
+        if self.geometry == "rig" and self.rig_job is None and self.rig is None:
+            raise ValueError("geometry 'rig' needs rig_job: the id of a finished stereo-rig job")
+        if self.min_disparity is not None and self.num_disparities is None:
+            raise ValueError("min_disparity needs num_disparities")
+        lo_hi = self.height_range_m
+        if lo_hi is not None and not lo_hi[1] > lo_hi[0]:
+            raise ValueError("height_range_m: give [lowest, highest] with highest above lowest")
+        return self
+
+    def resolved_geometry(self, both_have_rpcs: bool) -> str:
+        """The geometry ``auto`` stands for, given whether both photos carry RPCs (else ``geometry`` itself)."""
+        if self.geometry != "auto":
+            return self.geometry
+        if self.rectified:
+            return "rectified"
+        if self.rig_job is not None or self.rig is not None:
+            return "rig"
+        return "rpc" if both_have_rpcs else "uncalibrated"
+
+
 CalibrationConfig.model_rebuild()
 
 JOB_KINDS: dict[JobKind, type[BaseModel]] = {
@@ -388,6 +455,7 @@ JOB_KINDS: dict[JobKind, type[BaseModel]] = {
     JobKind.calibration: CalibrationConfig,
     JobKind.stereo_calibration: StereoCalibrationConfig,
     JobKind.crack_survey: CrackSurveyConfig,
+    JobKind.stereo_dem: StereoDemConfig,
 }
 
 

@@ -93,6 +93,8 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
         except (OSError, SyntaxError, ValueError) as exc:
             raise InvalidImageError(f"image data is corrupt or truncated ({exc})") from None
     meta: dict[str, Any] = {"width": width, "height": height, "format": fmt}
+    if fmt == "TIFF" and _has_rpcs(path):
+        meta["rpc"] = True
     meta.update(_exif_fields(exif))
     meta.update(_xmp_fields(xmp if isinstance(xmp, bytes) else str(xmp).encode()))
     return meta
@@ -164,7 +166,25 @@ def _inspect_tiff(path: Path, limits: ImageLimits) -> dict[str, Any]:
         raise InvalidImageError(f"not a readable TIFF ({exc})") from None
     _check_dimensions(width, height, limits)
     _decode_tiff_blocks(path)
-    return {"width": width, "height": height, "format": "TIFF"}
+    return {"width": width, "height": height, "format": "TIFF", **({"rpc": True} if _has_rpcs(path) else {})}
+
+
+def _has_rpcs(path: Path) -> bool:
+    """Whether a TIFF carries a usable rational polynomial camera model (a satellite product's RPC metadata);
+    a broken one (missing terms, a zero scale) counts as none."""
+    import rasterio  # GDAL: only for TIFF uploads
+
+    from workers.algorithms.stereo.rpc import Rpc  # NumPy only
+
+    try:
+        with rasterio.open(path) as src:
+            rpcs = src.rpcs
+        if rpcs is None:
+            return False
+        Rpc.from_dict(rpcs.to_dict())
+        return True
+    except (rasterio.errors.RasterioError, ValueError, TypeError):
+        return False
 
 
 def _decode_tiff_blocks(path: Path) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import threading
 import warnings
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -94,6 +95,34 @@ class WindowReader:
         c0, c1, _ = cols.indices(self.shape[1])
         window = Window(c0, r0, max(c1 - c0, 0), max(r1 - r0, 0))
         return _to_bgr8(self._dataset().read(indexes=_rgb_bands(self._count), window=window), self._dtype)
+
+
+def read_photo_array(path: str | Path) -> np.ndarray | None:
+    """The whole photo at its own bit depth: (H, W) for one band (a satellite panchromatic GeoTIFF), else
+    (H, W, 3) BGR; uint8 or uint16. None when it cannot be decoded."""
+    if not reads_by_window(path):
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
+        return None if image is None else np.ascontiguousarray(image)
+    try:
+        with rasterio.open(path) as src:
+            bands = src.read(indexes=_rgb_bands(src.count))
+    except rasterio.errors.RasterioError:
+        return None
+    if bands.dtype not in (np.uint8, np.uint16):
+        return None
+    return bands[0] if len(bands) == 1 else np.ascontiguousarray(np.moveaxis(bands[::-1], 0, 2))
+
+
+def read_rpcs(path: str | Path) -> dict[str, Any] | None:
+    """The RPC camera model a GeoTIFF carries (rasterio's ``RPC.to_dict()``), or None (none, or not a TIFF)."""
+    if not reads_by_window(path):
+        return None
+    try:
+        with rasterio.open(path) as src:
+            rpcs = src.rpcs
+    except rasterio.errors.RasterioError:
+        return None
+    return None if rpcs is None else dict(rpcs.to_dict())
 
 
 def _rgb_bands(count: int) -> list[int]:

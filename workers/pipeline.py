@@ -74,6 +74,12 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("compare_stages", 5),
         StageSpec("write_crack_report", 10),
     ),
+    JobKind.stereo_dem: (
+        StageSpec("rectify_pair", 15),
+        StageSpec("compute_disparity", 50),
+        StageSpec("build_dsm", 30),
+        StageSpec("write_stereo_report", 5),
+    ),
 }
 PARTED_STAGES = {spec.name for specs in PIPELINES.values() for spec in specs if spec.parted}
 # The option of a kind that selects a variant pipeline, and its default.

@@ -1,4 +1,5 @@
-"""Writing the mosaic: a tiled GeoTIFF filled window by window, then a Cloud-Optimized GeoTIFF."""
+"""Writing the mosaic: a tiled GeoTIFF filled window by window, then a Cloud-Optimized GeoTIFF; and small
+single-band rasters (a DSM, a disparity map) as COGs in one go."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 import rasterio
 from rasterio.crs import CRS
 from rasterio.enums import Resampling
+from rasterio.io import MemoryFile
 from rasterio.shutil import copy as rio_copy
 from rasterio.transform import Affine
 from rasterio.windows import Window
@@ -112,6 +114,81 @@ def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, 
                 scratch.build_overviews(levels, Resampling.average)
         with atomic_path(dst) as tmp:
             rio_copy(str(src), str(tmp), driver="COG", overviews="FORCE_USE_EXISTING", **options)
+
+
+def write_array_cog(
+    path: Path,
+    band: np.ndarray,
+    *,
+    transform: tuple[float, ...] | None = None,
+    epsg: int | None = None,
+    nodata: float | None = None,
+    resampling: str = "average",
+    compression: str = "deflate",
+    description: str = "",
+) -> None:
+    """One (H, W) band (float32 or uint8) as a COG at ``path``, atomically, built from an in-memory GeoTIFF.
+
+    ``transform`` (rasterio's a, b, c, d, e, f) and ``epsg`` place it, or neither (a raster in a photo's
+    pixels); ``nodata`` marks empty cells (NaN values become it); ``resampling`` builds the overviews
+    ("average" for heights, "nearest" for class codes). Floating-point data is compressed with predictor 3.
+    Meant for rasters that fit in memory: a DSM or disparity map of a stereo pair.
+    """
+    data = np.asarray(band)
+    if nodata is not None and np.issubdtype(data.dtype, np.floating):
+        data = np.where(np.isfinite(data), data, nodata).astype(data.dtype)
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": data.shape[1],
+        "height": data.shape[0],
+        "count": 1,
+        "dtype": str(data.dtype),
+        "tiled": True,
+        "blockxsize": COG_BLOCK_PX,
+        "blockysize": COG_BLOCK_PX,
+    }
+    if transform is not None:
+        profile["transform"] = Affine(*transform)
+        if epsg is not None:
+            profile["crs"] = CRS.from_epsg(epsg)
+    if nodata is not None:
+        profile["nodata"] = nodata
+    options = {
+        "compress": compression.upper(),
+        "blocksize": COG_BLOCK_PX,
+        "predictor": 3 if np.issubdtype(data.dtype, np.floating) else 2,
+        "overview_resampling": resampling.upper(),
+        "num_threads": "ALL_CPUS",
+    }
+    tags = {**provenance_tags(), **({"TIFFTAG_IMAGEDESCRIPTION": description} if description else {})}
+    with rasterio.Env(GDAL_NUM_THREADS="ALL_CPUS"), MemoryFile() as memory:
+        with memory.open(**profile) as scratch:
+            scratch.write(data, 1)
+            scratch.update_tags(**tags)
+        with memory.open() as scratch, atomic_path(path) as tmp:
+            rio_copy(scratch, str(tmp), driver="COG", **options)
+
+
+def write_rgb_cog(
+    path: Path,
+    scratch: Path,
+    rgb: np.ndarray,
+    mask: np.ndarray,
+    *,
+    crs: int | None = None,
+    transform: tuple[float, ...] | None = None,
+    compression: str = "deflate",
+) -> None:
+    """An (H, W, 3) uint8 RGB picture with its (H, W) bool mask as a COG at ``path`` (through the scratch
+    GeoTIFF ``scratch``, removed after), placed by ``transform`` and ``crs`` or in its own pixels."""
+    height, width = mask.shape
+    scratch.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with open_block_writer(scratch, width, height, crs, list(transform) if transform else None, None) as write:
+            write(Window(0, 0, width, height), rgb, mask)
+        translate_to_cog(scratch, path, compression, tags={})
+    finally:
+        scratch.unlink(missing_ok=True)
 
 
 def provenance_tags() -> dict[str, str]:

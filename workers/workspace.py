@@ -74,6 +74,7 @@ _CUTLINES = "cutlines.geojson"
 _CORNERS = "corners.json"
 _CALIBRATION = "calibration.json"
 _CAMERAS = "cameras.json"
+_TIE_POINTS = "tie_points.npz"
 _ORIENTATION = "orientation.json"
 _COMPARISON = "comparison.json"
 _REPORT = "report.json"
@@ -87,9 +88,19 @@ REPORT_FIGURES = {
 }
 _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
-_DSM = "dsm.tif"  # a digital surface model COG, by the stages that make one (none yet); an output when present
 _FOOTPRINTS = "footprints.geojson"
 _CRACKS_GEOJSON = "cracks.geojson"
+# stereo DEM jobs
+_RECTIFICATION = "rectification.json"
+_RECTIFIED = "work/rectified.npz"
+_DISPARITY_ARRAYS = "work/disparity.npz"
+_DISPARITY = "disparity.tif"
+_CONFIDENCE = "confidence.tif"
+_DEPTH = "depth.tif"
+_DSM = "dsm.tif"
+_DSM_MASK = "dsm_mask.tif"
+_DSM_VIEW = "view/dsm.tif"
+_DISPARITY_VIEW = "view/disparity.tif"
 
 
 _PART_KEY = re.compile(r"[A-Za-z0-9_]{1,64}")  # a part's key names its record file
@@ -321,6 +332,15 @@ class JobWorkspace:
     def save_cameras(self, cameras: dict[str, Any]) -> None:
         self._save_json(_CAMERAS, cameras)
 
+    def save_tie_points(self, points: np.ndarray) -> None:
+        """The adjusted tie points, (N, 3) float64 in the job's world frame (``adjust_bundle``)."""
+        _save_npz(self.root / _TIE_POINTS, points=np.asarray(points, np.float64).reshape(-1, 3))
+
+    def load_tie_points(self) -> np.ndarray:
+        """(N, 3) float64 world points ``adjust_bundle`` saved."""
+        with np.load(self.root / _TIE_POINTS) as data:
+            return np.asarray(data["points"])
+
     def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"
 
@@ -421,14 +441,72 @@ class JobWorkspace:
         with atomic_path(self.root / _CRACKS_CSV) as tmp:
             tmp.write_text(text)
 
+    # -- stereo DEM jobs ---------------------------------------------------------------------------
+    def load_rectification(self) -> dict[str, Any]:
+        """How the pair was rectified, its disparity range and geometry (``rectify_pair``)."""
+        return dict(self._json(_RECTIFICATION))
+
+    def save_rectification(self, rectification: dict[str, Any]) -> None:
+        self._save_json(_RECTIFICATION, rectification)
+
+    def save_rectified_pair(
+        self, left: np.ndarray, right: np.ndarray, valid_left: np.ndarray, valid_right: np.ndarray
+    ) -> None:
+        """The rectified pair, uint8 (H, W) or (H, W, 3), and the (H, W) bool pixels each photo covers."""
+        _save_npz(self.root / _RECTIFIED, left=left, right=right, valid_left=valid_left, valid_right=valid_right)
+
+    def load_rectified_pair(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(left, right, valid_left, valid_right)`` as ``save_rectified_pair`` saved them."""
+        with np.load(self.root / _RECTIFIED) as data:
+            return data["left"], data["right"], data["valid_left"], data["valid_right"]
+
+    def save_disparity_arrays(
+        self, disparity: np.ndarray, dense: np.ndarray, filled: np.ndarray, confidence: np.ndarray
+    ) -> None:
+        """The matcher's maps (``disparity.Disparity``'s fields), left rectified view, px."""
+        _save_npz(self.root / _DISPARITY_ARRAYS, disparity=disparity, dense=dense, filled=filled, confidence=confidence)
+
+    def load_disparity_arrays(self) -> dict[str, np.ndarray]:
+        """``disparity``, ``dense``, ``filled``, ``confidence`` (H, W) as ``save_disparity_arrays`` saved them."""
+        with np.load(self.root / _DISPARITY_ARRAYS) as data:
+            return {name: data[name] for name in ("disparity", "dense", "filled", "confidence")}
+
+    def disparity_path(self) -> Path:
+        """The left view's disparity, float32 px, NaN where none (an output)."""
+        return self.root / _DISPARITY
+
+    def confidence_path(self) -> Path:
+        """Per pixel of ``disparity.tif`` how far it is trusted, 0 where filled or none (an output)."""
+        return self.root / _CONFIDENCE
+
+    def depth_path(self) -> Path:
+        """A rig pair's depth in the rectified left camera, the rig's units (an output)."""
+        return self.root / _DEPTH
+
+    def dsm_path(self) -> Path:
+        """The DSM COG, float32 metres (an output, read by the point route)."""
+        return self.root / _DSM
+
+    def dsm_mask_path(self) -> Path:
+        """Per DSM cell: 0 no data, 1 measured, 2 filled (an output)."""
+        return self.root / _DSM_MASK
+
+    def dsm_view_path(self) -> Path:
+        """The DSM as colour-ramped, hillshaded RGB COG (read by the tile routes)."""
+        return self.root / _DSM_VIEW
+
+    def disparity_view_path(self) -> Path:
+        """The disparity as colour-ramped RGB COG in the left view's pixels (read by the tile routes)."""
+        return self.root / _DISPARITY_VIEW
+
+    def view_scratch_path(self, name: str) -> Path:
+        """Scratch GeoTIFF of a view COG before it is translated (``name``: "dsm" or "disparity")."""
+        return self.root / "view" / f"{name}.tmp.tif"
+
     # -- outputs --------------------------------------------------------------------------------
     def mosaic_path(self) -> Path:
         """The mosaic COG (an output, read by the tile routes)."""
         return self.root / _MOSAIC
-
-    def dsm_path(self) -> Path:
-        """The job's digital surface model COG (an output when a stage wrote one)."""
-        return self.root / _DSM
 
     def save_report_html(self, html: str, figures: dict[str, str]) -> None:
         """``report.html`` and its pictures (``REPORT_FIGURES`` name -> SVG text); a picture not given is removed."""
@@ -503,7 +581,7 @@ class JobWorkspace:
             ],
             "align_frames": lambda: [r / _ALIGNMENT],
             "georeference": lambda: [r / _GEOREF],
-            "adjust_bundle": lambda: [r / _CAMERAS],
+            "adjust_bundle": lambda: [r / _CAMERAS, r / _TIE_POINTS],
             "orthorectify_frames": lambda: [
                 r / _GEOREF,
                 *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
@@ -524,6 +602,10 @@ class JobWorkspace:
                 r / _CRACKS_CSV,
                 *(self.load_step_cog_path(s) for s in steps()),
             ],
+            "rectify_pair": lambda: [r / _RECTIFICATION, r / _RECTIFIED],
+            "compute_disparity": lambda: [r / _DISPARITY_ARRAYS, r / _DISPARITY, r / _CONFIDENCE, r / _DISPARITY_VIEW],
+            "build_dsm": lambda: self._surface_outputs(),
+            "write_stereo_report": lambda: [r / _REPORT],
         }
         listed = outputs.get(stage)
         return listed() if listed is not None else []
@@ -582,6 +664,15 @@ class JobWorkspace:
     def remove_parts(self, stage: str) -> None:
         shutil.rmtree(self._parts_dir(stage), ignore_errors=True)
 
+    def _surface_outputs(self) -> list[Path]:
+        """What ``build_dsm`` writes for the pair's geometry: a DSM (rpc), a depth map (rig) or nothing more."""
+        geometry = self.load_rectification()["geometry"]
+        if geometry == "rpc":
+            return [self.dsm_path(), self.dsm_mask_path(), self.dsm_view_path()]
+        if geometry == "rig":
+            return [self.depth_path()]
+        return [self.root / _RECTIFICATION]
+
     def forget_stage_report(self, stage: str) -> None:
         """Make pipeline stage ``stage`` run again on the next delivery (its report marks it done)."""
         self._stage_report_file(stage).unlink(missing_ok=True)
@@ -600,6 +691,10 @@ class JobWorkspace:
             _CAMERAS,
             _CRACKS_GEOJSON,
             _CRACKS_CSV,
+            _DSM_MASK,
+            _DISPARITY,
+            _CONFIDENCE,
+            _DEPTH,
         ]
         named = {name: self.root / name for name in names}
         for path in sorted([*self.root.glob("stage_*_rectified.tif"), *self.root.glob("stage_*_overlay.png")]):

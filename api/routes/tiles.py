@@ -1,9 +1,11 @@
 """XYZ tiles and TileJSON of a job's rasters, read with rio-tiler from that job's own COGs only.
 
-Two rasters have tiles: a mosaic job's mosaic, and each load step's rectified specimen of a crack survey (a
-load step: one entry of the survey's ``options.stages``, so named apart from the pipeline's stages; the former
-``/tiles/{job}/stages/{stage}/...`` paths still answer the same, hidden from the schema). Both routes name a job
-(and a load step), never a path; they share the tile and TileJSON code below.
+Three kinds of raster have tiles: a mosaic job's mosaic, each load step's rectified specimen of a crack survey
+(a load step: one entry of the survey's ``options.stages``, so named apart from the pipeline's stages; the
+former ``/tiles/{job}/stages/{stage}/...`` paths still answer the same, hidden from the schema), and a stereo
+DEM's layers (``dsm``: its DSM as shaded relief, ``disparity``: its disparity map, colour-ramped), with a point
+query of the value under a position (``/tiles/{job}/dsm/point``, ``/tiles/{job}/disparity/point``). The routes
+name a job (and a load step or layer), never a path; they share the tile and TileJSON code below.
 
 A georeferenced raster is served in WebMercatorQuad. A raster without map coordinates (a mosaic without
 GPS: no CRS; a specimen: a local engineering CRS in mm, neither geographic nor projected) is served in
@@ -19,9 +21,9 @@ once its job has succeeded: until then a retry may rewrite the raster, so the br
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Header, Request, Response
+from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi import Path as PathParam
 from sqlalchemy import select
 
@@ -94,6 +96,25 @@ def _load_step_cog(db: Database, settings: Settings, job_id: int, step: int) -> 
     return Cog(ws.load_step_cog_path(step), status == JobStatus.succeeded, missing)
 
 
+StereoLayer = Literal["dsm", "disparity"]  # a stereo DEM's shaded DSM, or its colour-ramped disparity map
+STEREO_LAYER = "dsm: the DSM as hillshaded, colour-ramped relief; disparity: the left view's disparity map"
+
+
+def _stereo_layer_cog(db: Database, settings: Settings, job_id: int, layer: StereoLayer) -> Cog:
+    ws = job_workspace(settings.data_dir, job_id)
+    path = ws.dsm_view_path() if layer == "dsm" else ws.disparity_view_path()
+    return _stereo_file(db, settings, job_id, path, "DSM" if layer == "dsm" else "disparity map")
+
+
+def _stereo_file(db: Database, settings: Settings, job_id: int, path: Path, what: str) -> Cog:
+    """One of stereo DEM ``job_id``'s rasters: 404 for another kind of job, and when the finished job has none
+    (only an RPC pair has a DSM); 409 while it may still come."""
+    status = _job_status(db, job_id, JobKind.stereo_dem, "stereo DEM")
+    if status == JobStatus.succeeded and not path.exists():
+        raise NotFoundError(f"stereo DEM {job_id} has no {what}" + (" (its pair has no RPCs)" if what == "DSM" else ""))
+    return Cog(path, status == JobStatus.succeeded, f"stereo DEM {job_id} has no {what} yet (status: {status})")
+
+
 # -- Routes --------------------------------------------------------------------------------------
 
 
@@ -151,6 +172,77 @@ def load_step_tilejson(
     template = request.url_for("load_step_tile", job_id=job_id, step=step, z=0, x=0, y=0)
     data = _tilejson(tiler, cog, template, f"crack survey {job_id} load step {step}")
     return _signed_tiles(data, db, settings, job_id)
+
+
+@router.get("/{job_id}/{layer}/{z}/{x}/{y}.png", responses=PNG)
+def stereo_tile(
+    job_id: JobId,
+    layer: Annotated[StereoLayer, PathParam(description=STEREO_LAYER)],
+    z: TileIndex,
+    x: TileIndex,
+    y: TileIndex,
+    db: DbDep,
+    settings: SettingsDep,
+    tiler: TilerDep,
+    if_none_match: IfNoneMatch = None,
+) -> Response:
+    """A 256 px PNG tile of a stereo DEM's layer: the DSM in WebMercatorQuad, the disparity in its pixels."""
+    cog = _stereo_layer_cog(db, settings, job_id, layer)
+    return _tile_response(tiler, settings, cog, (z, x, y), if_none_match, f"the {layer} of stereo DEM {job_id}")
+
+
+@router.get("/{job_id}/{layer}/tilejson.json")
+def stereo_tilejson(
+    job_id: JobId,
+    layer: Annotated[StereoLayer, PathParam(description=STEREO_LAYER)],
+    request: Request,
+    db: DbDep,
+    settings: SettingsDep,
+    tiler: TilerDep,
+) -> dict[str, Any]:
+    """TileJSON 2.2.0 of a stereo DEM's layer; the disparity map is a local pixel grid
+    (``georeferenced: false``, the rectified left view)."""
+    cog = _stereo_layer_cog(db, settings, job_id, layer)
+    template = request.url_for("stereo_tile", job_id=job_id, layer=layer, z=0, x=0, y=0)
+    data = _tilejson(tiler, cog, template, f"stereo DEM {job_id} {layer}")
+    return _signed_tiles(data, db, settings, job_id)
+
+
+Longitude = Annotated[float, Query(ge=-180.0, le=180.0, allow_inf_nan=False, description="degrees east")]
+Latitude = Annotated[float, Query(ge=-90.0, le=90.0, allow_inf_nan=False, description="degrees north")]
+PixelCoordinate = Annotated[float, Query(ge=-1e9, le=1e9, allow_inf_nan=False, description="left view pixels")]
+STATES = {0: None, 1: "measured", 2: "filled"}  # dsm_mask.tif's codes
+
+
+@router.get("/{job_id}/dsm/point")
+def dsm_point(
+    job_id: JobId, lon: Longitude, lat: Latitude, db: DbDep, settings: SettingsDep, tiler: TilerDep
+) -> dict[str, Any]:
+    """The DSM's elevation (m above the WGS 84 ellipsoid) at a longitude and latitude, and whether that cell was
+    measured or filled; ``elevation_m`` null outside the DSM or where it has none."""
+    ws = job_workspace(settings.data_dir, job_id)
+    elevation = tiler.sample(_stereo_file(db, settings, job_id, ws.dsm_path(), "DSM").identity, lon, lat, True)
+    state = None
+    if elevation is not None:
+        mask = _stereo_file(db, settings, job_id, ws.dsm_mask_path(), "DSM")
+        state = STATES.get(int(tiler.sample(mask.identity, lon, lat, True) or 0))
+    return {"lon": lon, "lat": lat, "elevation_m": elevation, "state": state}
+
+
+@router.get("/{job_id}/disparity/point")
+def disparity_point(
+    job_id: JobId, x: PixelCoordinate, y: PixelCoordinate, db: DbDep, settings: SettingsDep, tiler: TilerDep
+) -> dict[str, Any]:
+    """The disparity (px) and its confidence at a pixel (x, y) of the rectified left view (pixel (col, row)
+    spans [col, col + 1) x [row, row + 1)); ``disparity_px`` null outside the map or where it has none, and
+    ``confidence`` 0 where the value was filled."""
+    ws = job_workspace(settings.data_dir, job_id)
+    value = tiler.sample(_stereo_file(db, settings, job_id, ws.disparity_path(), "disparity map").identity, x, y, False)
+    confidence = None
+    if value is not None:
+        conf = _stereo_file(db, settings, job_id, ws.confidence_path(), "confidence map")
+        confidence = tiler.sample(conf.identity, x, y, False)
+    return {"x": x, "y": y, "disparity_px": value, "confidence": confidence}
 
 
 def _signed_tiles(tilejson: dict[str, Any], db: Any, settings: Any, job_id: int) -> dict[str, Any]:

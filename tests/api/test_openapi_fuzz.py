@@ -6,8 +6,8 @@ forever), Hypothesis builds requests from the schema: path and query parameters,
 with, and the multipart routes' files from a small set of photos, meshes, GCP files and junk. Values mostly
 fit the schema, and are often the ones an attacker sends instead: wrong types, ids beyond 64 bits, NaN and
 Infinity, 1e400, NUL characters, lone surrogates, long strings, JSON nested past the limit, broken JSON. The
-app holds a flight with photos, a queued mosaic job, a finished calibration and a finished stereo rig, so
-that ids 1-3 reach the code behind the 404s.
+app holds a flight with photos, a queued mosaic job, a finished calibration, a finished stereo rig and a
+finished stereo DEM with its rasters, so that ids 1-4 reach the code behind the 404s.
 
 Deterministic (``derandomize``, no example database) and sized to run in well under a minute on two cores.
 """
@@ -37,6 +37,7 @@ from tests.conftest import RecordingQueue, admin_client, fresh_database
 from workers.algorithms.calibration import StereoRig
 from workers.algorithms.geometry import Camera
 from workers.config import JOB_KINDS
+from workers.raster_io import write_array_cog, write_rgb_cog
 from workers.workspace import job_workspace
 
 EXAMPLES = 100  # requests per route and database: about 5000 requests in all
@@ -46,6 +47,7 @@ OPTIONS_MODELS = {  # the config model a route's ``options`` are validated with
     "/api/calibrations": JobKind.calibration,
     "/api/stereo-rigs": JobKind.stereo_calibration,
     "/api/crack-surveys": JobKind.crack_survey,
+    "/api/stereo-dems": JobKind.stereo_dem,
 }
 CAMERA = Camera(64, 48, 60.0, 60.0, 32.0, 24.0)
 
@@ -249,7 +251,7 @@ def multipart(path: str, operation: dict[str, Any], defs: dict[str, Any]) -> st.
 # -- Requests ------------------------------------------------------------------------------------------------
 
 
-SEEDED = st.sampled_from([1, 2, 3])  # ids that exist (see ``seed``)
+SEEDED = st.sampled_from([1, 2, 3, 4])  # ids that exist (see ``seed``)
 PARAMETER = st.one_of(
     SEEDED,
     SEEDED,
@@ -347,7 +349,28 @@ def seed(client: TestClient, settings_: Settings) -> None:
             ws.save_config(JOB_KINDS[kind]().model_dump())
             ws.save_inputs([{"name": "a.jpg", "side": "", "pair": 0, "width": 64, "height": 48}])
             ws.save_calibration(result)
+    _seed_stereo_dem(db, settings_)
     db.engine.dispose()
+
+
+def _seed_stereo_dem(db: Database, settings_: Settings) -> None:
+    """Job 4: a finished stereo DEM with a small DSM, its mask, a disparity map and their pictures."""
+    with db.session() as s:
+        job = Job(flight_id=None, kind=JobKind.stereo_dem, options={}, status=JobStatus.succeeded)
+        s.add(job)
+        s.flush()
+        ws = job_workspace(settings_.data_dir, job.id)
+    ws.save_config(JOB_KINDS[JobKind.stereo_dem](geometry="rpc").model_dump())
+    ws.save_inputs([])
+    heights = np.linspace(400, 450, 48 * 64, dtype=np.float32).reshape(48, 64)
+    transform = (1.0, 0.0, 500_000.0, 0.0, -1.0, 5_000_000.0)
+    write_array_cog(ws.dsm_path(), heights, transform=transform, epsg=32632, nodata=-9999.0)
+    write_array_cog(ws.dsm_mask_path(), np.ones((48, 64), np.uint8), transform=transform, epsg=32632, nodata=0)
+    write_array_cog(ws.disparity_path(), heights - 420, nodata=float("nan"))
+    write_array_cog(ws.confidence_path(), np.ones((48, 64), np.float32))
+    rgb, shown = np.full((48, 64, 3), 120, np.uint8), np.ones((48, 64), bool)
+    write_rgb_cog(ws.dsm_view_path(), ws.view_scratch_path("dsm"), rgb, shown, crs=32632, transform=transform)
+    write_rgb_cog(ws.disparity_view_path(), ws.view_scratch_path("disparity"), rgb, shown)
 
 
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])

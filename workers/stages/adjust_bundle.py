@@ -71,6 +71,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     progress(0.95, "report")
     report = triangulation_report(result, frames, camera, camera_source)
     ground_z = float(np.median(result.points[:, 2])) if len(result.points) else 0.0
+    ws.save_tie_points(result.points)  # orthorectify_frames grids its surface from them
     ws.save_cameras(
         {
             "world": _world_json(world),

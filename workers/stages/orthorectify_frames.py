@@ -1,9 +1,12 @@
-"""Stage ``orthorectify_frames``: every adjusted frame onto the ground plane, for ``compose_mosaic``.
+"""Stage ``orthorectify_frames``: every adjusted frame onto the ground, for ``compose_mosaic``.
 
 Each frame is undistorted through its adjusted camera; the undistorted frame and the ground plane
 ``Z = z0`` are then related by a homography, so the composer's warping and blending apply unchanged.
-Frames that see the horizon are cut below it (and beyond ``max_ground_range`` flying heights), since
-ground far away is smeared over a huge area by the projection.
+With ``ortho_surface: tie_points`` (the default) each frame is first rendered as if its ground were that
+plane: every pixel takes what the camera sees of the surface gridded from the adjusted tie points above or
+below the plane point it stands for (``sfm.relief_maps``), so hills and hollows land at their map positions
+instead of being displaced by their relief. Frames that see the horizon are cut below it (and beyond
+``max_ground_range`` flying heights), since ground far away is smeared over a huge area by the projection.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import numpy as np
 
 from workers.algorithms.geometry import Camera
 from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, map_grid, output_size_problem, pixel_grid
-from workers.algorithms.sfm import ground_crop
+from workers.algorithms.sfm import GroundSurface, ground_crop, ground_surface, relief_maps
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
 from workers.records import Alignment, Georef, RejectedFrame
@@ -36,6 +39,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         raise PipelineError(f"the cameras are not above the ground plane at {z0:.1f} m; set ground_elevation_m")
     plane_from_ground = np.diag([1.0 / gsd, -1.0 / gsd, 1.0])  # plane px: x east, y south
     maps = camera.undistort_maps(ideal)
+    surface, surface_note = _surface(ws, cfg)
     homographies: dict[int, np.ndarray] = {}
     sizes: dict[int, tuple[int, int]] = {}
     rejected = [RejectedFrame.from_json(r) for r in adjusted["not_registered"]]
@@ -48,7 +52,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             rejected.append(RejectedFrame(k, frames[k].name, reason))
             continue
         x0, y0, x1, y1 = crop
-        undistorted = cv2.remap(ws.load_working_image(k), maps[0], maps[1], cv2.INTER_LINEAR)[y0:y1, x0:x1]
+        if surface is None:
+            undistorted = cv2.remap(ws.load_working_image(k), maps[0], maps[1], cv2.INTER_LINEAR)[y0:y1, x0:x1]
+        else:
+            relief = relief_maps(R, C, camera, z0, crop, surface)
+            undistorted = cv2.remap(
+                ws.load_working_image(k), *relief, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
         ws.save_ortho_image(k, undistorted)
         shift = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])  # cropped px -> full px
         homographies[k] = plane_from_ground @ np.linalg.inv(image_from_ground) @ shift
@@ -74,7 +84,31 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         raise PipelineError(problem)
     ws.save_georef(grid)
     progress(1.0, f"{len(homographies)} frames at {gsd * 100:.1f} cm/px")
-    return {"frames": len(homographies), "rejected": len(rejected), "gsd_m": gsd, "ground_z": z0}
+    return {
+        "frames": len(homographies),
+        "rejected": len(rejected),
+        "gsd_m": gsd,
+        "ground_z": z0,
+        "surface": surface_note,
+    }
+
+
+def _surface(ws: JobWorkspace, cfg: MosaicConfig) -> tuple[GroundSurface | None, dict[str, Any]]:
+    """The surface frames are projected onto, and what the report says of it."""
+    if cfg.ortho_surface == "plane":
+        return None, {"kind": "plane", "why": "options.ortho_surface is 'plane'"}
+    points = ws.load_tie_points()
+    surface = ground_surface(points)
+    if surface is None:
+        return None, {"kind": "plane", "why": f"only {len(points)} tie points: too few for a surface"}
+    heights = surface.heights
+    return surface, {
+        "kind": "tie_points",
+        "points": len(points),
+        "cell_m": round(surface.cell, 3),
+        "size": [int(heights.shape[1]), int(heights.shape[0])],
+        "height_range_m": [round(float(heights.min()), 3), round(float(heights.max()), 3)],
+    }
 
 
 def _grid(

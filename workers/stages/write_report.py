@@ -70,6 +70,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     }
     if cfg.mode == "ortho":
         report["triangulation"] = ws.load_cameras()["report"]
+        # what the frames were projected onto: the tie points' surface, or the plane (and why)
+        report["ortho_surface"] = (ws.load_stage_report("orthorectify_frames") or {}).get("surface")
     report["warnings"] = _warnings(report)
     ws.save_report(report)
     progress(0.5, "report pictures")

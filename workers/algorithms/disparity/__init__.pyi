@@ -12,6 +12,15 @@ from .middlebury import (
 from .middlebury import (
     read_pair as read_pair,
 )
+from .pair import (
+    Method as Method,
+)
+from .pair import (
+    match_pair as match_pair,
+)
+from .pair import (
+    restrict as restrict,
+)
 from .postprocess import (
     Disparity as Disparity,
 )

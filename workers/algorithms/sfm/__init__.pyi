@@ -76,7 +76,16 @@ from .gcp import (
     scale_observations as scale_observations,
 )
 from .ortho import (
+    GroundSurface as GroundSurface,
+)
+from .ortho import (
     ground_crop as ground_crop,
+)
+from .ortho import (
+    ground_surface as ground_surface,
+)
+from .ortho import (
+    relief_maps as relief_maps,
 )
 from .reconstruction import (
     Reconstruction as Reconstruction,

@@ -1,10 +1,14 @@
 """Orthorectification geometry of a posed camera over a ground plane ``Z = z0``: the part of its frame that
 sees the ground nearby (frames that see the horizon are cut below it, since ground far away is smeared
-over a huge area by the projection)."""
+over a huge area by the projection); and over a surface gridded from the adjusted tie points, the maps that
+render a frame as if its ground were that plane (its relief displacement removed)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy import interpolate, ndimage, spatial
 
 from workers.algorithms.geometry import Camera
 
@@ -57,3 +61,135 @@ def _moved(edge: int, by: int, w: int, h: int) -> tuple[int, int, int, int]:
 
 def _area(crop: tuple[int, int, int, int]) -> int:
     return (crop[2] - crop[0]) * (crop[3] - crop[1])
+
+
+# -- A surface from the tie points ------------------------------------------------------------------------
+
+MIN_SURFACE_POINTS = 20  # fewer adjusted tie points make no surface: the plane is used
+OUTLIER_SIGMAS = 5.0  # a cell this many robust sigmas from the cells around it is dropped ...
+OUTLIER_FLOOR_CELLS = 0.5  # ... if also farther than this many cell widths (a slope's own spread)
+NEIGHBOUR_CELLS = 3.0  # the cells within this many cell widths are a cell's neighbours
+
+
+@dataclass(frozen=True, eq=False)
+class GroundSurface:
+    """Heights on a regular grid of the world frame: ``heights`` (H, W) float64, cell (row, col) centred on
+    (x0 + col * cell, y0 + row * cell), metres (rows grow northwards)."""
+
+    heights: np.ndarray
+    x0: float
+    y0: float
+    cell: float
+
+    def height_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear height at world (x, y); outside the grid, the nearest edge's."""
+        rows, cols = self.heights.shape
+        fx = np.clip((np.asarray(x, np.float64) - self.x0) / self.cell, 0.0, cols - 1.0)
+        fy = np.clip((np.asarray(y, np.float64) - self.y0) / self.cell, 0.0, rows - 1.0)
+        j0, i0 = (
+            np.minimum(np.floor(fx).astype(np.int64), cols - 2),
+            np.minimum(np.floor(fy).astype(np.int64), rows - 2),
+        )
+        j0, i0 = np.maximum(j0, 0), np.maximum(i0, 0)
+        tx, ty = fx - j0, fy - i0
+        h = self.heights
+        j1, i1 = np.minimum(j0 + 1, cols - 1), np.minimum(i0 + 1, rows - 1)
+        top = h[i0, j0] * (1 - tx) + h[i0, j1] * tx
+        bottom = h[i1, j0] * (1 - tx) + h[i1, j1] * tx
+        return np.asarray(top * (1 - ty) + bottom * ty)
+
+
+def ground_surface(points: np.ndarray, smooth_cells: float = 0.5) -> GroundSurface | None:
+    """A smooth surface through adjusted tie points (N, 3), or None with fewer than ``MIN_SURFACE_POINTS``.
+
+    The cell is twice the points' mean spacing over their bounding box; each cell takes the median height of
+    its points (a wrong point does not pull it), a cell far from the median of the cells around it, or with
+    none around it, is dropped (it holds only wrong points), cells without points are interpolated linearly
+    between the others (the nearest one's beyond their hull), then the grid is smoothed by a Gaussian of
+    ``smooth_cells`` cells. It stands for the ground the photos show, not for its detail: a surface the
+    orthorectification projects onto instead of one plane.
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < MIN_SURFACE_POINTS:
+        return None
+    lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+    area = max(float(np.prod(hi - lo)), 1e-6)
+    cell = 2.0 * float(np.sqrt(area / len(pts)))
+    cols, rows = (np.floor((hi - lo) / cell).astype(int) + 1).tolist()
+    index = np.floor((pts[:, :2] - lo) / cell).astype(int)
+    flat = index[:, 1] * cols + index[:, 0]
+    order = np.argsort(flat, kind="stable")
+    cells, starts = np.unique(flat[order], return_index=True)
+    medians = np.array([np.median(part) for part in np.split(pts[order, 2], starts[1:])])
+    grid_x, grid_y = np.meshgrid(np.arange(cols), np.arange(rows))
+    known = np.column_stack([cells % cols, cells // cols]).astype(np.float64)
+    keep = _consistent(known, medians, cell)
+    if keep.sum() >= 3:
+        known, medians = known[keep], medians[keep]
+    heights = _interpolate(known, medians, grid_x, grid_y)
+    if smooth_cells > 0:
+        heights = ndimage.gaussian_filter(heights, smooth_cells, mode="nearest")
+    return GroundSurface(heights, float(lo[0] + 0.5 * cell), float(lo[1] + 0.5 * cell), cell)
+
+
+def _consistent(known: np.ndarray, medians: np.ndarray, cell: float) -> np.ndarray:
+    """(K,) bool: the cells that agree with the other cells within ``NEIGHBOUR_CELLS`` of them. A cell with no
+    other around it (a lone point past the others) or far from their median holds only wrong points (a
+    mismatch triangulated hundreds of metres off)."""
+    tree = spatial.cKDTree(known)
+    around = np.full(len(known), np.nan)
+    for k, near in enumerate(tree.query_ball_point(known, NEIGHBOUR_CELLS)):
+        others = [j for j in near if j != k]
+        if others:
+            around[k] = np.median(medians[others])
+    off = np.abs(medians - around)
+    finite = np.isfinite(off)
+    if not finite.any():
+        return finite
+    limit = max(OUTLIER_SIGMAS * 1.4826 * float(np.median(off[finite])), OUTLIER_FLOOR_CELLS * cell)
+    return finite & (off <= limit)
+
+
+def _interpolate(known: np.ndarray, values: np.ndarray, grid_x: np.ndarray, grid_y: np.ndarray) -> np.ndarray:
+    """Linear between the known cells (Delaunay), the nearest known cell's value elsewhere."""
+    nearest = interpolate.griddata(known, values, (grid_x, grid_y), method="nearest")
+    if len(known) < 3:
+        return np.asarray(nearest, np.float64)
+    try:
+        linear = interpolate.griddata(known, values, (grid_x, grid_y), method="linear")
+    except spatial.QhullError:  # the cells on one line
+        return np.asarray(nearest, np.float64)
+    return np.asarray(np.where(np.isfinite(linear), linear, nearest), np.float64)
+
+
+def relief_maps(
+    R: np.ndarray,
+    C: np.ndarray,
+    camera: Camera,
+    z0: float,
+    crop: tuple[int, int, int, int],
+    surface: GroundSurface,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps that render a frame as if its ground were the plane ``Z = z0``.
+
+    Pixel (x, y) of the output (the undistorted frame's pixels inside ``crop``) stands for the plane point
+    its ray meets, (X, Y, z0); the map sends it to where the camera sees the surface's point above or below
+    it, (X, Y, surface(X, Y)), in the frame as photographed (``camera`` with its distortion). The rendered frame
+    and the plane are then related by the same homography as the plane's own rectification, so composing
+    is unchanged, but ground off the plane lands at its map position instead of being displaced by its
+    relief. Occlusions are not resolved (the surface is smooth).
+
+    R, C : the frame's pose, ``X_cam = R (X - C)``; camera : its adjusted camera, with distortion
+    Returns (y1 - y0, x1 - x0) float32 maps into the photographed frame.
+    """
+    x0, y0, x1, y1 = crop
+    ideal = camera.replace(k1=0.0, k2=0.0, k3=0.0, t1=0.0, t2=0.0)
+    u, v = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
+    rays = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)]) @ (R.T @ np.linalg.inv(ideal.matrix())).T
+    t = (z0 - C[2]) / rays[:, 2]
+    ground = C + t[:, None] * rays
+    ground[:, 2] = surface.height_at(ground[:, 0], ground[:, 1])
+    seen = camera.project((ground - C) @ R.T)
+    shape = (y1 - y0, x1 - x0)
+    return seen[:, 0].reshape(shape).astype(np.float32), seen[:, 1].reshape(shape).astype(np.float32)

@@ -1,0 +1,156 @@
+/* A finished stereo DEM on its job page: the DSM as hillshaded, colour-ramped tiles over the basemap with
+ * its legend and the elevation under the cursor; a pair without RPCs (rectified, a rig, uncalibrated) shows
+ * its disparity map the same way, in the rectified left view's pixels. Read from GET /api/stereo-dems/<id>
+ * (the report: figures and legend), /tiles/<id>/{dsm,disparity}/tilejson.json and the point route
+ * /tiles/<id>/{dsm,disparity}/point. Every report field may be missing: it then shows "–".
+ */
+
+import { api, downloadList, factList, formatCount, formatNumber, getConfig, h, humanize, jobOutputs, onAbort, warningAlerts } from "./lib.js";
+import { createMosaicMap } from "./result-map.js";
+
+const POINT_DELAY_MS = 120; // ask for the value under the cursor once it has rested this long
+const HEX_COLOUR = /^#[0-9a-f]{6}$/i; // a legend colour from the report, before it goes into a style
+const DOWNLOADS = {
+  "dsm.tif": "DSM (Cloud-Optimized GeoTIFF, m)",
+  "dsm_mask.tif": "DSM cells measured (1) or filled (2)",
+  "disparity.tif": "Disparity map (left view, px)",
+  "confidence.tif": "Confidence of each disparity (0: filled)",
+  "depth.tif": "Depth map (the rig's units)",
+  "report.json": "Processing report",
+};
+const MATCHERS = {
+  sgbm: "Semi-global (OpenCV SGBM, checked)",
+  local: "Local 2-D search, soft epipolar constraint",
+};
+const GEOMETRIES = {
+  rpc: "RPC pair (satellite): rectified and triangulated through the RPCs",
+  rig: "Calibrated stereo rig",
+  uncalibrated: "Uncalibrated: rectified from matched features",
+  rectified: "Already rectified",
+};
+
+/** Fill `card` with the stereo DEM of `job` (which has succeeded). */
+export async function showStereoDem(view, job, card) {
+  card.hidden = false;
+  card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the surface…"));
+  const { signal } = view;
+  const data = await api("GET", `/api/stereo-dems/${job.id}`, { signal });
+  if (signal.aborted) return;
+  const report = (data && data.result) || {};
+  const surface = report.surface || {};
+  const dsm = surface.surface === "dsm";
+  const layer = dsm ? "dsm" : "disparity";
+  const [tilejson, outputs, config] = await Promise.all([
+    api("GET", `/tiles/${job.id}/${layer}/tilejson.json`, { signal }),
+    jobOutputs(job.id, { signal }),
+    getConfig(),
+  ]);
+  if (signal.aborted) return;
+
+  const mapNode = h("div", { class: "map", id: "map", "data-testid": "map", role: "region",
+    "aria-label": dsm ? "DSM map" : "Disparity map" });
+  const readout = h("p", { class: "readout", "data-testid": "point-readout", role: "status", "aria-live": "polite" },
+    dsm ? "Move over the map to read the elevation." : "Move over the map to read the disparity.");
+  const legend = dsm ? surface.legend : (report.disparity || {}).legend;
+  card.replaceChildren(
+    h("div", { class: "row spread" }, h("h2", { id: "result-heading" }, dsm ? "Surface model" : "Disparity"),
+      h("span", { class: "muted small" }, dsm ? `DSM in EPSG:${surface.epsg ?? "–"}, shown on WGS 84 / Web Mercator`
+        : "No camera model on the ground: shown in the rectified left view's pixels")),
+    ...warningAlerts(report.warnings, "stereo-warning"),
+    h("div", { class: "result-grid" }, mapNode,
+      h("div", { class: "map-controls" },
+        h("div", { class: "control" }, h("h3", {}, dsm ? "Elevation" : "Disparity"), legendNode(legend), readout),
+        h("div", { class: "control" }, h("h3", {}, "Figures"), factList(facts(report, dsm))),
+        h("div", { class: "control" }, downloadList(outputs.filter((o) => DOWNLOADS[o.name]), (name) => DOWNLOADS[name] || name)))),
+  );
+  const attribution = dsm ? "DSM: Fotoskhema" : "Disparity: Fotoskhema";
+  const { map } = createMosaicMap(mapNode, tilejson, dsm ? config.basemap_url : "", attribution);
+  onAbort(signal, () => map.remove());
+  followPointer(view, map, job.id, dsm, readout);
+}
+
+/** The value under the cursor, asked for once the cursor rests; one request at a time, the older aborted. */
+function followPointer(view, map, jobId, dsm, readout) {
+  let timer = null;
+  let pending = null;
+  const ask = async (latlng) => {
+    if (pending) pending.abort();
+    pending = new AbortController();
+    const query = dsm ? `lon=${latlng.lng.toFixed(8)}&lat=${latlng.lat.toFixed(8)}`
+      : `x=${latlng.lng.toFixed(3)}&y=${(-latlng.lat).toFixed(3)}`; // CRS.Simple: one unit per pixel, y negated
+    try {
+      const point = await api("GET", `/tiles/${jobId}/${dsm ? "dsm" : "disparity"}/point?${query}`, { signal: pending.signal });
+      if (!view.signal.aborted) readout.textContent = pointText(point, dsm);
+    } catch (err) {
+      if (err && err.name === "AbortError") return; // a newer position took over
+      if (!view.signal.aborted) readout.textContent = "The value could not be read here.";
+    }
+  };
+  map.on("mousemove", (event) => {
+    clearTimeout(timer);
+    timer = setTimeout(() => ask(event.latlng), POINT_DELAY_MS);
+  });
+  map.on("mouseout", () => clearTimeout(timer));
+  onAbort(view.signal, () => {
+    clearTimeout(timer);
+    if (pending) pending.abort();
+  });
+}
+
+function pointText(point, dsm) {
+  if (dsm) {
+    const where = `${formatNumber(point.lat, 6)}, ${formatNumber(point.lon, 6)}`;
+    if (typeof point.elevation_m !== "number") return `No elevation at ${where}.`;
+    return `${formatNumber(point.elevation_m, 2, "m")} (${point.state || "–"}) at ${where}`;
+  }
+  const where = `x ${formatNumber(point.x, 1)}, y ${formatNumber(point.y, 1)}`;
+  if (typeof point.disparity_px !== "number") return `No disparity at ${where}.`;
+  const filled = point.confidence === 0 ? "filled" : `confidence ${formatNumber(point.confidence, 2)}`;
+  return `${formatNumber(point.disparity_px, 2, "px")} (${filled}) at ${where}`;
+}
+
+/** A colour bar of the ramp's stops and the values at its ends and middle. */
+function legendNode(legend) {
+  const stops = (legend && Array.isArray(legend.stops) ? legend.stops : [])
+    .filter((s) => s && typeof s.value === "number" && typeof s.colour === "string" && HEX_COLOUR.test(s.colour));
+  if (stops.length < 2) return h("p", { class: "muted small" }, "No legend in the report.");
+  const units = legend.units === "px" ? "px" : "m";
+  const bar = h("div", { class: "ramp-bar", "data-testid": "legend-bar", role: "img",
+    "aria-label": `Colour ramp from ${formatNumber(stops[0].value, 1, units)} to ${formatNumber(stops[stops.length - 1].value, 1, units)}` });
+  const span = stops[stops.length - 1].value - stops[0].value || 1;
+  bar.style.background = `linear-gradient(to right, ${stops.map((s) => `${s.colour} ${(100 * (s.value - stops[0].value)) / span}%`).join(", ")})`;
+  const middle = stops[0].value + span / 2;
+  return h("div", { class: "ramp", "data-testid": "legend" }, bar,
+    h("div", { class: "ramp-labels muted small" },
+      [stops[0].value, middle, stops[stops.length - 1].value].map((v) => h("span", {}, formatNumber(v, 1, units)))),
+    units === "m" ? h("p", { class: "muted small" }, "Heights above the WGS 84 ellipsoid; relief shaded from the north-west.") : null);
+}
+
+function facts(report, dsm) {
+  const surface = report.surface || {};
+  const disparity = report.disparity || {};
+  const rect = report.rectification || {};
+  const share = (v) => (typeof v === "number" ? `${(100 * v).toFixed(1)} %` : "–");
+  const range = Number.isFinite(disparity.min_disparity) && Number.isFinite(disparity.num_disparities)
+    ? `${disparity.min_disparity} to ${disparity.min_disparity + disparity.num_disparities} px (${disparity.range_source || "–"})` : "–";
+  const rows = [
+    ["Geometry", GEOMETRIES[report.geometry] || report.geometry || "–", { "data-testid": "stereo-geometry" }],
+    ["Matcher", MATCHERS[report.method] || humanize(report.method || "–")],
+    ["Rows after rectification", formatNumber(rect.row_residual_px, 3, "px")],
+    ["Disparities searched", range],
+    ["Checked disparities", share(disparity.checked_share), { "data-testid": "checked-share" }],
+    ["Filled disparities", share(disparity.filled_share)],
+  ];
+  if (dsm) {
+    rows.push(
+      ["DSM cell", formatNumber(surface.resolution_m, 3, "m"), { "data-testid": "dsm-resolution" }],
+      ["DSM size", Array.isArray(surface.size) ? `${formatCount(surface.size[0])} × ${formatCount(surface.size[1])} cells` : "–"],
+      ["Measured cells", share(surface.measured_share), { "data-testid": "measured-share" }],
+      ["Filled cells", share(surface.filled_share)],
+    );
+  } else if (surface.surface === "depth") {
+    rows.push(["Depth", Array.isArray(surface.depth_range)
+      ? `${formatNumber(surface.depth_range[0], 1)} to ${formatNumber(surface.depth_range[1], 1)}` : "–"]);
+  }
+  return rows;
+}
