@@ -110,6 +110,9 @@ def finish(
 ) -> dict[str, Any]:
     """Copy the bands into the scratch GeoTIFF, then write ``mosaic.tif`` (COG, RGB + mask)."""
     geo = ws.load_georef()
+    for key in records:  # bands deleted by a finish that was stopped after the COG: composed again here
+        if not ws.compose_band_path(int(key)).exists():
+            run_part(ws, cfg, key)
     tmp = ws.mosaic_scratch_path()
     transform = geo.transform if geo.georeferenced else None
     with open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write:

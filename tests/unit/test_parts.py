@@ -1,0 +1,62 @@
+"""Stages in parts: declared the same way everywhere, and a part is done once whoever does it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from tests.scenes import make_flight
+from workers.pipeline import PARTED_STAGES, PIPELINES, process_directory, run_stage, stage_module, stage_names
+from workers.workspace import JobWorkspace
+
+
+def test_every_stage_in_parts_has_plan_part_and_finish_and_is_parted_in_every_pipeline() -> None:
+    for pipeline, specs in PIPELINES.items():
+        for spec in specs:
+            module = stage_module(spec.name)
+            assert (spec.name in PARTED_STAGES) == spec.parted, f"{spec.name} is parted in some pipelines only"
+            has_parts = all(hasattr(module, f) for f in ("plan", "run_part", "finish"))
+            assert has_parts == spec.parted, f"{pipeline}: {spec.name} parted={spec.parted}, module parts={has_parts}"
+            assert spec.parted or hasattr(module, "run")
+
+
+def test_a_part_key_must_be_a_plain_name(tmp_path: Path) -> None:
+    ws = JobWorkspace(tmp_path)
+    ws.save_part("load_images", "00001", {"frame": 1})
+    assert ws.parts_done("load_images") == {"00001"}
+    for bad in ("../x", "a/b", "", "x" * 65, "a.b"):
+        with pytest.raises(ValueError):
+            ws.save_part("load_images", bad, {})
+
+
+def test_parts_done_are_not_redone_and_the_outputs_are_the_same(tmp_path: Path) -> None:
+    """The job done whole; then two parts of detect_features and two bands of compose_mosaic forgotten, as a
+    worker that died with them: running the stages again redoes those parts only, and the mosaic is the same."""
+    make_flight(tmp_path / "frames", n_frames=4, frame_size=(320, 240), seed=2)
+    process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 320, "block_px": 256})
+    ws = JobWorkspace(tmp_path / "job")
+    with rasterio.open(ws.mosaic_path()) as src:
+        before = src.read()
+    features = sorted((ws.root / "features").glob("frame_*.npz"))
+    stamps = {p: p.stat().st_mtime_ns for p in features}
+    records = sorted((ws.root / "parts" / "detect_features").glob("part_*.json"))
+    assert len(records) == 4 and json.loads(records[0].read_text())["_done_by"]
+    for record in records[:2]:  # the dead worker's parts: no record, so not done (files may be half there)
+        record.unlink()
+    for stage in ("detect_features", "compose_mosaic"):
+        ws.forget_stage_report(stage)  # the stage never finished
+    bands = sorted((ws.root / "parts" / "compose_mosaic").glob("part_*.json"))
+    bands[-1].unlink()
+    ws.mosaic_path().unlink()
+    for name in stage_names("mosaic"):
+        run_stage(ws, "mosaic", name)
+    redone = [p for p in features if p.stat().st_mtime_ns != stamps[p]]
+    assert [p.name for p in redone] == [p.name for p in features[:2]]  # exactly the two forgotten parts
+    with rasterio.open(ws.mosaic_path()) as src:
+        np.testing.assert_array_equal(src.read(), before)
+    summary = ws.load_stage_report("detect_features")["parts"]  # type: ignore[index]
+    assert summary["count"] == 4 and sum(v["parts"] for v in summary["by"].values()) == 4
