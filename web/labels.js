@@ -6,7 +6,8 @@ export const LABELS = Object.freeze({
     "mosaic": "Mosaic",
     "calibration": "Camera calibration",
     "stereo_calibration": "Stereo rig calibration",
-    "crack_survey": "Crack survey"
+    "crack_survey": "Crack survey",
+    "stereo_dem": "Stereo elevation model"
   },
   "status": {
     "queued": "Waiting",
@@ -19,6 +20,7 @@ export const LABELS = Object.freeze({
     "load_images": "Reading the photos",
     "detect_features": "Finding features",
     "match_features": "Matching photo pairs",
+    "measure_ties": "Measuring tie points",
     "match_strips": "Matching strip frames",
     "align_frames": "Aligning the photos",
     "georeference": "Placing on the map",
@@ -35,7 +37,11 @@ export const LABELS = Object.freeze({
     "detect_cracks": "Finding cracks",
     "measure_cracks": "Measuring cracks",
     "compare_stages": "Comparing load steps",
-    "write_crack_report": "Writing the crack report"
+    "write_crack_report": "Writing the crack report",
+    "rectify_pair": "Rectifying the stereo pair",
+    "compute_disparity": "Matching the pair pixel by pixel",
+    "build_dsm": "Building the surface model",
+    "write_stereo_report": "Writing the report"
   },
   "mode": {
     "planar": "Planar (flat ground)",
@@ -52,6 +58,7 @@ export const LABELS = Object.freeze({
   },
   "feature_type": {
     "sift": "SIFT features",
+    "orb": "ORB features",
     "harris_ncc": "Harris corners matched by correlation"
   },
   "datum": {
