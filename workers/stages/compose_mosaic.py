@@ -21,6 +21,8 @@ from rasterio.windows import Window
 
 from workers.algorithms.mosaic import (
     SCRATCH_RAW_MAX_PX,
+    ccd_gains,
+    column_brightness,
     compose_block,
     compose_block_multiband,
     gains_and_coverage,
@@ -69,8 +71,22 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
         ws.save_seams(owned_regions(labels, label_scale))
     else:
         ws.remove_seams()  # a feathered mosaic (again): no cut lines
+    if cfg.ccd_segments > 1:
+        shared["ccd_gains"] = _ccd_gains(ws, cfg.ccd_segments).tolist()
     ws.save_part_inputs(STAGE, shared)
     return [f"{y:07d}" for y in range(0, geo.height, cfg.block_px)]
+
+
+def _ccd_gains(ws: JobWorkspace, segments: int) -> np.ndarray:
+    """The gain of each CCD sub-image, from the native columns either side of every join of every frame."""
+    frames = ws.load_composed_frames()
+    widths = {f.orig_width for f in frames.values()}
+    if len(widths) != 1:
+        raise PipelineError("ccd_segments is for frames of one camera: these frames differ in width")
+    (width,) = widths
+    if width < 2 * segments:
+        raise PipelineError(f"frames {width} px wide cannot be joined from {segments} CCD sub-images")
+    return ccd_gains(lambda k, c0, c1: np.asarray(_photo(ws, frames, k)[:, c0:c1]), sorted(frames), width, segments)
 
 
 def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
@@ -88,15 +104,17 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
         sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
         image_of = partial(_photo, ws, frames)
     boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
+    steps = np.array(shared["ccd_gains"]) if "ccd_gains" in shared else None
+    columns = None if steps is None else {k: column_brightness(sizes[k][0], steps) for k in to_frame}
     if cfg.blend == "multiband":
         labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
 
     def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if cfg.blend == "multiband":
             return compose_block_multiband(
-                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands, vignette
+                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands, vignette, columns
             )
-        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette)
+        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette, columns)
 
     height = min(cfg.block_px, geo.height - y)
     windows = [(x, y, min(cfg.block_px, geo.width - x), height) for x in range(0, geo.width, cfg.block_px)]
@@ -165,6 +183,7 @@ def finish(
         "output_resolution": cfg.output_resolution,
         "blend": cfg.blend,
         "vignetting": {"c1": vignette[0], "c2": vignette[1]} if cfg.vignetting_correction else None,
+        "ccd_gains": shared.get("ccd_gains"),  # of each CCD sub-image, left to right (ccd_segments)
         # colour step across the cut lines / the same 16 px beside them (1.0: invisible); a feathered mosaic is
         # measured on the lines a multiband one would be cut along
         "seam_visibility": visibility,
