@@ -105,6 +105,9 @@ class MosaicConfig(BaseModel):
     strip_reduction: int = Field(8, ge=1, le=64)  # working copies at 1/this of the frames (working_max_px unused)
     strip_tie_points: int = Field(400, ge=20, le=20000)  # native-resolution tie points sought per pair
     strip_min_spread: float = Field(0.5, gt=0.0, le=1.0)  # inliers must span this share of the overlap's length
+    # frames joined across their width from this many CCD sub-images of equal width (32 for the source camera): the
+    # gain step at each join is measured in the frames' own rows and undone; 0: none
+    ccd_segments: int = Field(0, ge=0, le=4096)
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
     # intrinsics the adjustment refines
