@@ -55,6 +55,7 @@ def compose_once(ws: JobWorkspace, blend: str) -> dict[str, Any]:
     """``compose_mosaic`` again with ``blend``: wall seconds, parts' CPU seconds, seam visibility."""
     cfg = ws.load_config()
     cfg["blend"] = blend
+    cfg["measure_seams"] = True  # a feathered mosaic measured on the seams a multiband one would be cut along
     ws.save_config(cfg)
     started = time.perf_counter()
     report = run_stage(ws, pipeline_key("mosaic", cfg), "compose_mosaic", rerun=True)

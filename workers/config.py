@@ -89,6 +89,9 @@ class MosaicConfig(BaseModel):
     # frames agree (graph cut on a low-resolution render), then Laplacian bands blended across them
     blend: Literal["feather", "multiband"] = "feather"
     blend_bands: int = Field(5, ge=1, le=8)  # multiband: pyramid levels; the coarsest blends over ~2^bands px
+    # feather: cut seams anyway (about 1.2 s on the Brighton strip) to report the seam visibility on them, as a
+    # multiband mosaic would be cut (bench/seams.py compares the blends so); a multiband mosaic always has them
+    measure_seams: bool = False
     # output window edge when composing, px: 512 is the COG tile; 1024 took 25 % more peak memory, no less time
     block_px: int = Field(512, ge=256, le=8192)
     # COG codec for the mosaic: deflate (lossless, every reader), zstd (lossless, ~30 % faster to write, GDAL

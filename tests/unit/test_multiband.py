@@ -98,9 +98,13 @@ def test_a_multiband_mosaic_shows_the_ground_where_it_lies(tmp_path) -> None:
     assert_frame_index_is_true(flight, ws, report)
     feather = process_directory(tmp_path / "frames", tmp_path / "feather", {"working_max_px": 1024})
     assert "cutlines.geojson" not in JobWorkspace(tmp_path / "feather").outputs()  # feathering cuts no seams
+    assert feather["mosaic"]["seam_visibility"] is None  # nor measures them, unless asked (a second)
     assert_frame_index_is_true(flight, JobWorkspace(tmp_path / "feather"), feather)
+    measured = process_directory(
+        tmp_path / "frames", tmp_path / "measured", {"working_max_px": 1024, "measure_seams": True}
+    )
     # measured on the same seams: a feathered mosaic's ground is the same, its seams show about as little
-    assert 0 < feather["mosaic"]["seam_visibility"] < 1.3
+    assert 0 < measured["mosaic"]["seam_visibility"] < 1.3
 
 
 def assert_frame_index_is_true(flight, ws: JobWorkspace, report: dict) -> None:

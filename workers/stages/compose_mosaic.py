@@ -63,10 +63,12 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     )
     ws.save_coverage(Coverage(outline, area))
     shared: dict[str, Any] = {"gains": {str(k): g.tolist() for k, g in gains.items()}, "vignette": list(vignette)}
-    # the seams a multiband mosaic is cut along; a feathered one is measured on the same lines (not cut there)
-    labels, label_scale = seam_labels(working_of, sizes, to_frame, gains, geo.width, geo.height)
-    ws.save_part_arrays(STAGE, labels=labels)
-    shared["label_scale"] = label_scale
+    # the seams a multiband mosaic is cut along; a feathered one is measured on the same lines (not cut there),
+    # when asked to (measure_seams)
+    if _has_seams(cfg):
+        labels, label_scale = seam_labels(working_of, sizes, to_frame, gains, geo.width, geo.height)
+        ws.save_part_arrays(STAGE, labels=labels)
+        shared["label_scale"] = label_scale
     if cfg.blend == "multiband":
         ws.save_seams(owned_regions(labels, label_scale))
     else:
@@ -166,10 +168,12 @@ def finish(
     tmp.unlink(missing_ok=True)
     tmp_index.unlink(missing_ok=True)
     shared = ws.load_part_inputs(STAGE)
-    progress(0.95, "measuring the seams")
-    labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
-    with open_window_reader(ws.mosaic_path()) as read_window:
-        visibility = seam_visibility(read_window, *seam_points(labels, label_scale))
+    visibility = None
+    if _has_seams(cfg):
+        progress(0.95, "measuring the seams")
+        labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
+        with open_window_reader(ws.mosaic_path()) as read_window:
+            visibility = seam_visibility(read_window, *seam_points(labels, label_scale))
     ws.remove_native_images()
     for key in records:
         ws.compose_band_path(int(key)).unlink(missing_ok=True)
@@ -202,6 +206,10 @@ def _index_tags(frames: dict[int, Frame]) -> dict[str, str]:
             "its index + 1 (footprints.geojson's index); 0: none"}  # fmt: skip
     tags.update({f"FRAME_{k + 1}": "".join(c if c.isprintable() else " " for c in f.name) for k, f in frames.items()})
     return tags
+
+
+def _has_seams(cfg: MosaicConfig) -> bool:
+    return cfg.blend == "multiband" or cfg.measure_seams
 
 
 def _working_geometry(ws: JobWorkspace) -> tuple[dict[int, tuple[int, int]], dict[int, np.ndarray]]:
