@@ -52,6 +52,9 @@ STAGE = "compose_mosaic"
 _PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes from (native resolution)
 
 
+PART_UNIT = "band"  # what a part is, in the progress
+
+
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     """Gains, coverage and (multiband) seams, saved for the parts; a part per band of ``block_px`` rows."""
     geo = ws.load_georef()
