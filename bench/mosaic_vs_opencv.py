@@ -41,7 +41,7 @@ def peak_rss_mib() -> float:
     raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
 
 
-def run_ours(src: str, working_max_px: int) -> dict[str, Any]:
+def run_ours(src: str, working_max_px: int, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Child: the full pipeline, including writing the COG and report.json into a temp dir.
 
     The stage modules are imported before the clock starts, as a worker imports its tasks once when it
@@ -49,12 +49,13 @@ def run_ours(src: str, working_max_px: int) -> dict[str, Any]:
     """
     from workers.pipeline import pipeline_key, process_directory, stage_function, stage_names
 
-    for stage in stage_names(pipeline_key("mosaic", {"working_max_px": working_max_px})):
+    options = {"working_max_px": working_max_px, **(extra or {})}
+    for stage in stage_names(pipeline_key("mosaic", options)):
         stage_function(stage)
     with tempfile.TemporaryDirectory() as out:
         started = time.perf_counter()
         try:
-            report = process_directory(Path(src), Path(out), {"working_max_px": working_max_px})
+            report = process_directory(Path(src), Path(out), options)
         except Exception as exc:  # a benchmark reports the failure instead of dying
             return {
                 "ok": False,
@@ -197,7 +198,27 @@ def measure(name: str, src: Path, working_max_px: int, with_opencv: bool = True)
     cv = in_child(run_opencv, str(src), working_max_px) if with_opencv else {"ok": False, "status": "not run"}
     cv.setdefault("seconds", float("nan"))
     cv.setdefault("peak_mib", float("nan"))
-    return {"name": name, "dir": str(src), "frames": n, "ours": ours, "opencv": cv, "ratios": ratios(ours, cv)}
+    return {
+        "name": name,
+        "dir": str(src),
+        "frames": n,
+        "working_max_px": working_max_px,
+        "ours": ours,
+        "opencv": cv,
+        "ratios": ratios(ours, cv),
+    }
+
+
+def native_cost(result: dict[str, Any]) -> dict[str, Any]:
+    """Ours again on the same frames with ``output_resolution: native`` (composed from the full photos)."""
+    native = in_child(run_ours, result["dir"], result["working_max_px"], {"output_resolution": "native"})
+    return {
+        "name": result["name"],
+        "working_s": result["ours"]["seconds"],
+        "native_s": native["seconds"],
+        "peak_mib": native["peak_mib"],
+        "size": _size(native),
+    }
 
 
 def print_scaling(rows: list[dict[str, Any]]) -> None:
@@ -222,6 +243,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--synthetic", type=int, default=30, help="frames of the synthetic GPS flight (0: none)")
     parser.add_argument("--scaling", type=int, nargs="*", default=[], help="synthetic flight sizes, ours only")
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
+    parser.add_argument(
+        "--native", action="store_true", help="also time ours at the photos' own resolution (output_resolution)"
+    )
     return parser.parse_args(argv)
 
 
@@ -248,8 +272,16 @@ def main(argv: list[str] | None = None) -> int:
     print_table(results)
     if scaling:
         print_scaling(scaling)
+    native = [native_cost(r) for r in results if args.native and Path(r["dir"]).is_dir()]
+    if native:
+        print(f"{'data set':24}{'working s':>10}{'native s':>10}{'time x':>8}{'native px':>14}{'native MiB':>11}")
+        for row in native:
+            print(
+                f"{row['name'][:23]:24}{row['working_s']:>10.2f}{row['native_s']:>10.2f}"
+                f"{row['native_s'] / row['working_s']:>8.2f}{row['size']:>14}{row['peak_mib']:>11.0f}"
+            )
     if args.json:
-        figures = {"working_max_px": args.working_max_px, "data_sets": results, "scaling": scaling}
+        figures = {"working_max_px": args.working_max_px, "data_sets": results, "scaling": scaling, "native": native}
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
     return 0
 
