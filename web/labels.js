@@ -6,7 +6,8 @@ export const LABELS = Object.freeze({
     "mosaic": "Mosaic",
     "calibration": "Camera calibration",
     "stereo_calibration": "Stereo rig calibration",
-    "crack_survey": "Crack survey"
+    "crack_survey": "Crack survey",
+    "stereo_dem": "Stereo DEM"
   },
   "status": {
     "queued": "Waiting",
@@ -20,6 +21,7 @@ export const LABELS = Object.freeze({
     "detect_features": "Finding features",
     "match_features": "Matching photo pairs",
     "match_strips": "Matching strip frames",
+    "measure_ties": "Measuring tie points",
     "align_frames": "Aligning the photos",
     "georeference": "Placing on the map",
     "adjust_bundle": "Photo-triangulation",
@@ -35,7 +37,11 @@ export const LABELS = Object.freeze({
     "detect_cracks": "Finding cracks",
     "measure_cracks": "Measuring cracks",
     "compare_stages": "Comparing load steps",
-    "write_crack_report": "Writing the crack report"
+    "write_crack_report": "Writing the crack report",
+    "rectify_pair": "Rectifying the pair",
+    "compute_disparity": "Matching the pair (disparity)",
+    "build_dsm": "Building the surface model",
+    "write_stereo_report": "Writing the stereo report"
   },
   "mode": {
     "planar": "Planar (flat ground)",
@@ -52,6 +58,7 @@ export const LABELS = Object.freeze({
   },
   "feature_type": {
     "sift": "SIFT features",
+    "orb": "ORB corners (fast; planar mode's default)",
     "harris_ncc": "Harris corners matched by correlation"
   },
   "datum": {
@@ -72,7 +79,17 @@ export const LABELS = Object.freeze({
   "gcp_role": {
     "control": "Control point",
     "tie": "Tie point (no known position)",
-    "checkpoint": "Check point (held out)"
+    "checkpoint": "Check point (held out)",
+    "unused": "Not used (no marks on a placed photo)"
+  },
+  "photo_issue": {
+    "blurred": "Blurred",
+    "under_exposed": "Too dark",
+    "over_exposed": "Too bright",
+    "no_gps": "No GPS position",
+    "duplicate": "Same picture as another photo",
+    "size_mismatch": "Other size than the flight's photos",
+    "not_checked": "Not checked"
   },
   "camera_parameter": {
     "focal_px_original": "Focal length (px of the full-size photo)",

@@ -89,6 +89,7 @@ REPORT_FIGURES = {
 _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
 _FOOTPRINTS = "footprints.geojson"
+_GCP_POINTS = "gcps.geojson"  # the ground control points as the map has them (write_report)
 _CRACKS_GEOJSON = "cracks.geojson"
 # stereo DEM jobs
 _RECTIFICATION = "rectification.json"
@@ -534,6 +535,12 @@ class JobWorkspace:
     def save_footprints(self, collection: dict[str, Any]) -> None:
         self._save_json(_FOOTPRINTS, collection)
 
+    def load_gcp_points(self) -> dict[str, Any]:
+        return dict(self._json(_GCP_POINTS))
+
+    def save_gcp_points(self, collection: dict[str, Any]) -> None:
+        self._save_json(_GCP_POINTS, collection)
+
     def _stage_report_file(self, stage: str) -> Path:
         return self.root / "reports" / f"{stage}.json"
 
@@ -687,6 +694,7 @@ class JobWorkspace:
             *REPORT_FIGURES,
             _FOOTPRINTS,
             _CUTLINES,
+            _GCP_POINTS,
             _CALIBRATION,
             _CAMERAS,
             _CRACKS_GEOJSON,
