@@ -79,7 +79,7 @@ FORM_MODES = ("planar", "ortho")
 def form_options() -> list[dict[str, Any]]:
     """Each of ``FORM_OPTIONS``: its choices (or its range), and its default in each of ``FORM_MODES`` (some
     defaults depend on the mode: planar mode registers with ORB, ortho mode with SIFT), from ``MosaicConfig``."""
-    defaults = {mode: MosaicConfig(mode=mode).model_dump() for mode in FORM_MODES}
+    defaults = {mode: MosaicConfig.model_validate({"mode": mode}).model_dump() for mode in FORM_MODES}
     out = []
     for name in FORM_OPTIONS:
         info = MosaicConfig.model_fields[name]

@@ -16,7 +16,7 @@ from api.auth import UserDep
 from api.deps import DbDep, FlightId, SettingsDep
 from api.errors import ApiError, NotFoundError, PreconditionFailedError
 from api.models import UploadOut
-from api.routes.flights import image_out
+from api.photo_service import image_out
 from core.db import Database, Flight
 from core.settings import Settings
 
