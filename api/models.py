@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -147,6 +147,19 @@ class MarksUpdate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     markers: list[Marks] = Field(min_length=1, max_length=MAX_PHOTOS)  # per photo: new marks, or remove: true
+
+
+class VolumeRequest(BaseModel):
+    """A polygon on a stereo DEM's DSM and the base its volume is measured from."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    # (lon, lat) vertices, WGS 84 degrees; the ring is closed for you
+    polygon: list[tuple[Annotated[float, Field(ge=-180, le=180)], Annotated[float, Field(ge=-90, le=90)]]] = Field(
+        min_length=3, max_length=1000
+    )
+    # fit: a plane through the surface along the polygon's edge; lowest: the lowest of it; a number: that elevation, m
+    base: Literal["fit", "lowest"] | Annotated[float, Field(ge=-1000.0, le=10000.0)] = "fit"
 
 
 class MeasureRequest(BaseModel):
