@@ -249,7 +249,7 @@ def test_job_page_map_footprints_and_quality(page_watch, live_service, hostile_m
     box = page.get_by_test_id("map").bounding_box()
     page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
-    expect(tooltip).to_contain_text(re.compile(r"^Frame \d+: "))
+    expect(tooltip).to_contain_text(re.compile(r"^(Camera of f|F)rame \d+: "))  # a footprint, or its camera centre
     expect(tooltip).to_contain_text(re.compile("|".join(re.escape(n) for n in PHOTO_NAMES)))
 
     # The Quality card: every string of the report as text.
