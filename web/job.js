@@ -47,10 +47,10 @@ export async function renderJob(view, root, jobId) {
   const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
   renderJobPage(view, root, job, {
     crumbs: stereo ? [["Stereo DEMs"], [`Job #${jobId}`]]
-      : calibration ? [["Calibrations"], [`Job #${jobId}`]]
+      : calibration ? [["Calibrations", "#/calibrations"], [`Job #${jobId}`]]
         : [["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]],
     cards: stereo ? [result] : [result, quality],
-    listHref: calibration || stereo ? "#/" : `#/flights/${job.flight_id}`,
+    listHref: calibration ? "#/calibrations" : stereo ? "#/" : `#/flights/${job.flight_id}`,
     onSucceeded: (done) => (stereo ? showStereoDem(view, done, result).catch(showLoadError(view, result, "result"))
       : showOutcome(view, done, result, quality, calibration)),
   });

@@ -5,7 +5,6 @@ before starting, and the options form starts a job with the options chosen."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import cv2
 import httpx
@@ -35,7 +34,9 @@ def test_the_check_flags_a_blurred_and_a_dark_photo_and_one_is_deleted(signed_in
     from playwright.sync_api import expect
 
     page, watch = signed_in_page
-    created = httpx.post(f"{live_service.url}/api/flights", json={"name": "Checked"}, headers=live_service.headers).json()
+    created = httpx.post(
+        f"{live_service.url}/api/flights", json={"name": "Checked"}, headers=live_service.headers
+    ).json()
     page.goto(f"{live_service.url}/#/flights/{created['id']}")
     page.get_by_test_id("file-input").set_input_files([str(p) for p in photos])
     rows = page.get_by_test_id("image-row")
@@ -68,7 +69,12 @@ def test_the_check_flags_a_blurred_and_a_dark_photo_and_one_is_deleted(signed_in
     expect(rows).to_have_count(6)
     expect(markers).to_have_count(6)
     expect(page.locator("tr.flagged")).to_have_count(1)
-    names = [i["filename"] for i in httpx.get(f"{live_service.url}/api/flights/{created['id']}", headers=live_service.headers).json()["images"]]
+    names = [
+        i["filename"]
+        for i in httpx.get(f"{live_service.url}/api/flights/{created['id']}", headers=live_service.headers).json()[
+            "images"
+        ]
+    ]
     assert photos[5].name not in names and len(names) == 6
     watch.assert_clean(live_service.url)
 
@@ -82,7 +88,9 @@ def test_the_options_form_starts_a_job_with_what_was_chosen(signed_in_page, live
     files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in photos[:3]]
     assert httpx.post(f"{url}/api/flights/{created['id']}/images", files=files, headers=headers, timeout=60).is_success
     page.goto(f"{url}/#/flights/{created['id']}")
-    expect(page.get_by_test_id("option-feature_type-default")).to_have_text("default: ORB corners (fast; planar mode's default)")
+    expect(page.get_by_test_id("option-feature_type-default")).to_have_text(
+        "default: ORB corners (fast; planar mode's default)"
+    )
     expect(page.get_by_test_id("option-working_max_px")).to_have_value("2048")
     page.get_by_test_id("mode-ortho").check()
     expect(page.get_by_test_id("option-feature_type")).to_have_value("sift")  # ortho's default

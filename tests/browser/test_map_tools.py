@@ -80,7 +80,9 @@ def _number(text: str, before: str) -> float:
     return float(number.replace(" ", ""))
 
 
-def test_a_distance_and_an_area_between_gcps_match_the_geodesic_truth(signed_in_page, live_service, flight_jobs) -> None:
+def test_a_distance_and_an_area_between_gcps_match_the_geodesic_truth(
+    signed_in_page, live_service, flight_jobs
+) -> None:
     from playwright.sync_api import expect
 
     page, watch = signed_in_page
@@ -173,7 +175,8 @@ def test_the_layer_switcher_and_footprints_by_residual(signed_in_page, live_serv
     expect(page.get_by_test_id("photo-rms")).to_contain_text("px")
     preview = page.get_by_test_id("photo-preview")
     page.wait_for_function(
-        "() => { const i = document.querySelector('[data-testid=\"photo-preview\"]'); return i && i.complete && i.naturalWidth > 0; }"
+        "() => { const i = document.querySelector('[data-testid=\"photo-preview\"]');"
+        " return i && i.complete && i.naturalWidth > 0; }"
     )
     assert "/photos/" in (preview.get_attribute("src") or "") and "sig=" in (preview.get_attribute("src") or "")
     page.get_by_test_id("photo-pick").select_option("0")
@@ -214,7 +217,9 @@ def test_two_jobs_of_the_flight_side_by_side(signed_in_page, live_service, fligh
     clips = page.evaluate(
         """() => ['mosaic', 'compare'].map((p) => document.querySelector(`.leaflet-${p}-pane`).style.clip)"""
     )
-    left, right = ([float(v) for v in c.removeprefix("rect(").removesuffix(")").replace("px", "").split(",")] for c in clips)
+    left, right = (
+        [float(v) for v in c.removeprefix("rect(").removesuffix(")").replace("px", "").split(",")] for c in clips
+    )
     assert left[1] == right[3], clips  # the mosaic ends where the comparison begins
     width = page.get_by_test_id("map").bounding_box()["width"]
     assert abs((left[1] - left[3]) - (14 + (width - 28) * 0.5)) < 1.5, clips  # half way along the thumb's travel
@@ -236,7 +241,9 @@ def test_two_jobs_of_the_flight_side_by_side(signed_in_page, live_service, fligh
 
 
 @pytest.mark.parametrize("online", [True, False])
-def test_openstreetmap_is_the_basemap_online_and_none_offline(signed_in_page, live_service, flight_jobs, online) -> None:
+def test_openstreetmap_is_the_basemap_online_and_none_offline(
+    signed_in_page, live_service, flight_jobs, online
+) -> None:
     """The service's own config says OpenStreetMap (answered here by the page's router: the machine is offline);
     the browser shows it while online, and asks nothing of it offline."""
     from playwright.sync_api import expect
@@ -264,7 +271,9 @@ def test_openstreetmap_is_the_basemap_online_and_none_offline(signed_in_page, li
     if online:
         expect(page.get_by_test_id("basemap-osm")).to_be_checked()
         expect(page.locator(".leaflet-control-attribution")).to_contain_text("OpenStreetMap contributors")
-        page.wait_for_function("() => document.querySelectorAll('.leaflet-tile-pane img.leaflet-tile-loaded').length > 0")
+        page.wait_for_function(
+            "() => document.querySelectorAll('.leaflet-tile-pane img.leaflet-tile-loaded').length > 0"
+        )
         assert asked
         page.get_by_test_id("basemap-none").check()
         expect(page.locator(".leaflet-tile-pane img")).to_have_count(0)
