@@ -29,6 +29,7 @@ ASSETS = {
     "report.json": ("report-json", "Quality report (JSON)", "application/json", ["metadata"]),
     "footprints.geojson": ("footprints", "Photo footprints", "application/geo+json", ["metadata"]),
     "cutlines.geojson": ("cutlines", "Seam lines", "application/geo+json", ["metadata"]),
+    "frame_index.tif": ("frame-index", "Frame of each pixel (index + 1, 0: none)", COG, ["data"]),
 }
 
 

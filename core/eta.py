@@ -34,25 +34,27 @@ PIXEL_STAGES = frozenset(
     {"compose_mosaic", "orthorectify_frames", "rectify_specimen", "detect_cracks", "write_crack_report"}
 )
 # Seconds per unit of work (``work_unit``) of each stage on the reference machine (2 cores, the real Brighton
-# strip: 6 DJI photos of 9 MP at 2048 px, planar and ortho; bench/eta.py): what a service with no history of
+# strip: 6 DJI photos of 9 MP at 2048 px, planar (ORB, guided tie points) and ortho, wall seconds with other work
+# on the machine; bench/eta.py): what a service with no history of
 # its own starts from, its pace then measured on the job itself
 DEFAULT_RATES: dict[str, dict[str, float]] = {
     "mosaic": {
-        "load_images": 0.048,
-        "detect_features": 1.48,
-        "match_features": 1.37,
-        "align_frames": 0.26,
+        "load_images": 0.026,
+        "detect_features": 0.048,
+        "match_features": 0.063,
+        "measure_ties": 0.10,
+        "align_frames": 0.052,
         "georeference": 0.005,
-        "compose_mosaic": 0.60,
+        "compose_mosaic": 0.35,
         "write_report": 0.25,
     },
     "mosaic.ortho": {
-        "load_images": 0.029,
-        "detect_features": 2.83,
-        "match_features": 1.56,
-        "adjust_bundle": 1.43,
-        "orthorectify_frames": 0.075,
-        "compose_mosaic": 0.47,
+        "load_images": 0.024,
+        "detect_features": 2.1,
+        "match_features": 0.62,
+        "adjust_bundle": 0.86,
+        "orthorectify_frames": 1.14,
+        "compose_mosaic": 0.55,
         "write_report": 0.3,
     },
 }

@@ -18,7 +18,9 @@ import datetime as dt
 import io
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -241,6 +243,82 @@ def make_flight(
     return flight
 
 
+CAR_SIZE = (48, 24)  # (length, width) of the moving car, texture px
+CAR_BGR = (30, 30, 220)  # saturated red: no part of the texture is as red over the car's area
+
+
+@dataclass(frozen=True)
+class SeamFlight:
+    """A flight whose frames disagree where they overlap, as real ones do, with the truth of each disagreement.
+
+    Attributes
+    ----------
+    flight : SyntheticFlight
+        The frames (rewritten with the effects below) and their geometry.
+    gains : ndarray
+        ``(N,) float64`` exposure of each frame (its pixels are the texture's times this).
+    vignette : tuple of float
+        ``(c1, c2)`` of the lens fall-off ``exp(c1 rho^2 + c2 rho^4)`` every frame carries
+        (``workers.algorithms.mosaic.vignetting``'s model, rho 1 at a frame's corners).
+    cars : ndarray
+        ``(N, 4, 2) float64``: texture px of the corners of the car in frame ``i``'s shot; it drives on, so each
+        frame sees it somewhere else, and the frames that overlap there see the bare ground.
+    """
+
+    flight: SyntheticFlight
+    gains: np.ndarray
+    vignette: tuple[float, float]
+    cars: np.ndarray
+
+    def car_colour(self) -> np.ndarray:
+        """``(3,) float64`` the car's BGR before gain and fall-off."""
+        return np.array(CAR_BGR, np.float64)
+
+
+def make_seam_flight(
+    out_dir: Path,
+    n_frames: int = 6,
+    exposure: float = 0.2,
+    vignette: tuple[float, float] = (-0.35, -0.05),
+    seed: int = 4,
+    **flight_args: object,
+) -> SeamFlight:
+    """:func:`make_flight` (GPS, a strip by default) with per-frame exposure, a lens fall-off and a moving car.
+
+    Frame ``i`` is rendered from the texture with the car drawn at ``cars[i]`` (a point ahead of and below the
+    frame's centre, so in the overlap with the frame before it), then multiplied by ``gains[i]`` (uniform in
+    ``[1 - exposure, 1 + exposure]``) and the fall-off, and written as :func:`make_flight` writes it.
+    """
+    flight = make_flight(out_dir, n_frames=n_frames, gps=True, seed=seed, **flight_args)  # type: ignore[arg-type]
+    rng = np.random.default_rng(seed + 1)
+    gains = rng.uniform(1 - exposure, 1 + exposure, n_frames)
+    w, h = flight.frame_size
+    length, width = CAR_SIZE
+    body = np.array([[-length, -width], [length, -width], [length, width], [-length, width]], np.float64) / 2
+    cars = []
+    for i in range(n_frames):
+        centre = _apply_homography(flight.homographies[i], np.array([[0.3 * w, 0.62 * h]]))[0]
+        cars.append(centre + body)
+    seam_flight = SeamFlight(flight=flight, gains=gains, vignette=vignette, cars=np.array(cars))
+    _write_frames(flight, 8.8, 60.0, 92, render=partial(_seam_frame, seam_flight))
+    return seam_flight
+
+
+def _seam_frame(seam_flight: SeamFlight, i: int) -> np.ndarray:
+    """``(h, w, 3) uint8`` frame ``i`` of a :class:`SeamFlight`: the car on the ground, exposure, fall-off."""
+    flight = seam_flight.flight
+    w, h = flight.frame_size
+    ground = flight.texture.copy()
+    cv2.fillPoly(ground, [np.round(seam_flight.cars[i]).astype(np.int32)], CAR_BGR, cv2.LINE_AA)
+    frame = cv2.warpPerspective(ground, np.linalg.inv(flight.homographies[i]), (w, h), flags=cv2.INTER_LINEAR)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    cx, cy = (w - 1) / 2, (h - 1) / 2
+    rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) / (cx * cx + cy * cy)
+    c1, c2 = seam_flight.vignette
+    scale = seam_flight.gains[i] * np.exp(c1 * rho2 + c2 * rho2 * rho2)
+    return np.clip(frame * scale[..., None] + 0.5, 0, 255).astype(np.uint8)
+
+
 def _check_flight_args(
     n_frames: int,
     frame_size: tuple[int, int],
@@ -345,14 +423,23 @@ def _with_gps(flight: SyntheticFlight, altitude_m: float) -> SyntheticFlight:
     return dataclasses.replace(flight, gps=positions)
 
 
-def _write_frames(flight: SyntheticFlight, focal_length_mm: float, altitude_m: float, quality: int) -> None:
-    """Render every frame of ``flight`` and save it as a JPEG with EXIF."""
+def _write_frames(
+    flight: SyntheticFlight,
+    focal_length_mm: float,
+    altitude_m: float,
+    quality: int,
+    render: Callable[[int], np.ndarray] | None = None,
+) -> None:
+    """Render every frame of ``flight`` (by ``render(i)`` when given) and save it as a JPEG with EXIF."""
     w, h = flight.frame_size
     pixel_pitch_mm = flight.gsd_m * focal_length_mm / altitude_m
     for i, path in enumerate(flight.paths):
-        frame = cv2.warpPerspective(
-            flight.texture, np.linalg.inv(flight.homographies[i]), (w, h), flags=cv2.INTER_LINEAR
-        )
+        if render is not None:
+            frame = render(i)
+        else:
+            frame = cv2.warpPerspective(
+                flight.texture, np.linalg.inv(flight.homographies[i]), (w, h), flags=cv2.INTER_LINEAR
+            )
         exif = _exif_bytes(
             gps=flight.gps[i] if flight.gps is not None else None,
             focal_length_mm=focal_length_mm,

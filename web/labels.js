@@ -7,7 +7,7 @@ export const LABELS = Object.freeze({
     "calibration": "Camera calibration",
     "stereo_calibration": "Stereo rig calibration",
     "crack_survey": "Crack survey",
-    "stereo_dem": "Stereo DEM"
+    "stereo_dem": "Stereo elevation model"
   },
   "status": {
     "queued": "Waiting",
@@ -20,8 +20,8 @@ export const LABELS = Object.freeze({
     "load_images": "Reading the photos",
     "detect_features": "Finding features",
     "match_features": "Matching photo pairs",
-    "match_strips": "Matching strip frames",
     "measure_ties": "Measuring tie points",
+    "match_strips": "Matching strip frames",
     "align_frames": "Aligning the photos",
     "georeference": "Placing on the map",
     "adjust_bundle": "Photo-triangulation",
@@ -38,10 +38,10 @@ export const LABELS = Object.freeze({
     "measure_cracks": "Measuring cracks",
     "compare_stages": "Comparing load steps",
     "write_crack_report": "Writing the crack report",
-    "rectify_pair": "Rectifying the pair",
-    "compute_disparity": "Matching the pair (disparity)",
+    "rectify_pair": "Rectifying the stereo pair",
+    "compute_disparity": "Matching the pair pixel by pixel",
     "build_dsm": "Building the surface model",
-    "write_stereo_report": "Writing the stereo report"
+    "write_stereo_report": "Writing the report"
   },
   "mode": {
     "planar": "Planar (flat ground)",
@@ -58,7 +58,7 @@ export const LABELS = Object.freeze({
   },
   "feature_type": {
     "sift": "SIFT features",
-    "orb": "ORB corners (fast; planar mode's default)",
+    "orb": "ORB features",
     "harris_ncc": "Harris corners matched by correlation"
   },
   "datum": {

@@ -89,6 +89,9 @@ class MosaicConfig(BaseModel):
     # frames agree (graph cut on a low-resolution render), then Laplacian bands blended across them
     blend: Literal["feather", "multiband"] = "feather"
     blend_bands: int = Field(5, ge=1, le=8)  # multiband: pyramid levels; the coarsest blends over ~2^bands px
+    # feather: cut seams anyway (about 1.2 s on the Brighton strip) to report the seam visibility on them, as a
+    # multiband mosaic would be cut (bench/seams.py compares the blends so); a multiband mosaic always has them
+    measure_seams: bool = False
     # output window edge when composing, px: 512 is the COG tile; 1024 took 25 % more peak memory, no less time
     block_px: int = Field(512, ge=256, le=8192)
     # COG codec for the mosaic: deflate (lossless, every reader), zstd (lossless, ~30 % faster to write, GDAL
@@ -105,6 +108,9 @@ class MosaicConfig(BaseModel):
     strip_reduction: int = Field(8, ge=1, le=64)  # working copies at 1/this of the frames (working_max_px unused)
     strip_tie_points: int = Field(400, ge=20, le=20000)  # native-resolution tie points sought per pair
     strip_min_spread: float = Field(0.5, gt=0.0, le=1.0)  # inliers must span this share of the overlap's length
+    # frames joined across their width from this many CCD sub-images of equal width (32 for the source camera): the
+    # gain step at each join is measured in the frames' own rows and undone; 0: none
+    ccd_segments: int = Field(0, ge=0, le=4096)
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length
     # intrinsics the adjustment refines

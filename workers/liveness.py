@@ -170,50 +170,72 @@ def _idle() -> dict[str, Any]:
     return {"heartbeat_at": None, "heartbeat_by": "", "deliveries": 0}
 
 
-class Heartbeat:
-    """While a stage runs (``with Heartbeat(...)``), stamps its job's ``heartbeat_at`` every ``interval`` s
-    from a daemon thread. ``lost`` turns true once the record is no longer this process's (cancelled, failed
-    or sent again by the reaper); on leaving, the job is marked idle and its start count reset."""
+class _Beat:
+    """A daemon thread that calls ``_alive()`` every ``interval`` s while the ``with`` block runs; ``lost`` turns
+    true once ``_alive`` says the record is no longer this run's (cancelled, failed or sent again)."""
 
-    def __init__(self, db: Database, job_id: int, interval: float, *, hold: bool = False) -> None:
+    def __init__(self, db: Database, job_id: int, interval: float) -> None:
         self.db, self.job_id, self.interval = db, job_id, interval
-        self.hold = hold  # on leaving, keep the start count: a stage's plan, whose parts are still to run
-        self.me = this_process()
         self._stop, self._lost = threading.Event(), threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job_id}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}-{job_id}", daemon=True)
 
     @property
     def lost(self) -> bool:
         return self._lost.is_set()
 
-    def __enter__(self) -> Heartbeat:
-        self._thread.start()
-        return self
+    def _alive(self) -> bool:
+        raise NotImplementedError
 
-    def __exit__(self, *_exc: object) -> None:
+    def _start(self) -> None:
+        self._thread.start()
+
+    def _end(self) -> None:
         self._stop.set()
         self._thread.join()
-        self._stamp({**_idle(), "deliveries": Job.deliveries} if self.hold else _idle())
 
     def _run(self) -> None:
         while not self._stop.wait(self.interval):
             try:
-                if not self._stamp({"heartbeat_at": utcnow()}, status=JobStatus.running):
+                if not self._alive():
                     self._lost.set()
                     return
             except SQLAlchemyError:  # the database is away for a moment: the stale threshold allows for it
                 log.warning("job %s: heartbeat not written", self.job_id, exc_info=True)
 
-    def _stamp(self, values: dict[str, Any], status: str | None = None) -> bool:
-        query = update(Job).where(Job.id == self.job_id, Job.heartbeat_by == self.me)
-        if status is not None:
-            query = query.where(Job.status == status)
+    def _update(self, where: list[Any], values: dict[str, Any]) -> bool:
         with self.db.session() as s:
-            done = s.execute(query.values(**values).execution_options(synchronize_session=False))
+            done = s.execute(
+                update(Job)
+                .where(Job.id == self.job_id, *where)
+                .values(**values)
+                .execution_options(synchronize_session=False)
+            )
             return bool(done.rowcount == 1)  # type: ignore[attr-defined]
 
 
-class PartBeat:
+class Heartbeat(_Beat):
+    """While a stage runs (``with Heartbeat(...)``), stamps its job's ``heartbeat_at`` every ``interval`` s
+    from a daemon thread. ``lost`` turns true once the record is no longer this process's (cancelled, failed
+    or sent again by the reaper); on leaving, the job is marked idle and its start count reset."""
+
+    def __init__(self, db: Database, job_id: int, interval: float, *, hold: bool = False) -> None:
+        super().__init__(db, job_id, interval)
+        self.hold = hold  # on leaving, keep the start count: a stage's plan, whose parts are still to run
+        self.me = this_process()
+
+    def __enter__(self) -> Heartbeat:
+        self._start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._end()
+        self._update([Job.heartbeat_by == self.me], {**_idle(), "deliveries": Job.deliveries} if self.hold else _idle())
+
+    def _alive(self) -> bool:
+        return self._update([Job.heartbeat_by == self.me, Job.status == JobStatus.running], {"heartbeat_at": utcnow()})
+
+
+class PartBeat(_Beat):
     """While one worker does parts of a stage spread over several (``with PartBeat(...)``), stamps the job's
     ``heartbeat_at`` every ``interval`` s, as long as the record is still chain ``token``'s and running. Many
     processes stamp one job at once, so nothing is held: ``heartbeat_by`` stays empty. ``lost`` turns true once
@@ -222,44 +244,24 @@ class PartBeat:
     the reaper finds in the queue; the other parts still running stamp it again within ``interval``."""
 
     def __init__(self, db: Database, job_id: int, token: str | None, interval: float) -> None:
-        self.db, self.job_id, self.token, self.interval = db, job_id, token, interval
-        self._stop, self._lost = threading.Event(), threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"part-beat-{job_id}", daemon=True)
-
-    @property
-    def lost(self) -> bool:
-        return self._lost.is_set()
+        super().__init__(db, job_id, interval)
+        self.where = [Job.status == JobStatus.running, Job.heartbeat_by == ""]
+        if token is not None:
+            self.where.append(Job.celery_id == token)
 
     def __enter__(self) -> PartBeat:
-        if not self._stamp(utcnow()):
+        if not self._alive():
             self._lost.set()
-        self._thread.start()
+        self._start()
         return self
 
     def __exit__(self, *_exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
+        self._end()
         with contextlib.suppress(SQLAlchemyError):
-            self._stamp(None)
+            self._update(self.where, {"heartbeat_at": None})
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval):
-            try:
-                if not self._stamp(utcnow()):
-                    self._lost.set()
-                    return
-            except SQLAlchemyError:  # the database is away for a moment: the stale threshold allows for it
-                log.warning("job %s: part heartbeat not written", self.job_id, exc_info=True)
-
-    def _stamp(self, when: Any) -> bool:
-        where = [Job.id == self.job_id, Job.status == JobStatus.running, Job.heartbeat_by == ""]
-        if self.token is not None:
-            where.append(Job.celery_id == self.token)
-        with self.db.session() as s:
-            done = s.execute(
-                update(Job).where(*where).values(heartbeat_at=when).execution_options(synchronize_session=False)
-            )
-            return bool(done.rowcount == 1)  # type: ignore[attr-defined]
+    def _alive(self) -> bool:
+        return self._update(self.where, {"heartbeat_at": utcnow()})
 
 
 def take_over(db: Database, job_id: int, token: str | None) -> bool:

@@ -214,7 +214,12 @@ def run_parts(
             record["_seconds"] = round(time.perf_counter() - started, 3)
             ws.save_part(stage, key, record)
 
-    ordered_map(one, keys, threads, progress, "part")
+    ordered_map(one, keys, threads, progress, part_unit(module))
+
+
+def part_unit(module: ModuleType) -> str:
+    """What one part of a stage is, in its progress ("frame 3/12"): the module's ``PART_UNIT``, else "part"."""
+    return str(getattr(module, "PART_UNIT", "part"))
 
 
 def finish_stage(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, progress: ProgressFn) -> dict[str, Any]:

@@ -116,6 +116,76 @@ def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, 
             rio_copy(str(src), str(tmp), driver="COG", overviews="FORCE_USE_EXISTING", **options)
 
 
+IndexWriter = Callable[[Window, np.ndarray], None]
+
+
+@contextmanager
+def open_index_writer(
+    path: Path,
+    width: int,
+    height: int,
+    crs: int | str | None,
+    transform: list[float] | None,
+    compress: str | None = "deflate",
+) -> Iterator[IndexWriter]:
+    """A 1-band uint16 tiled GeoTIFF with nodata 0 (a mosaic's frame index); yields ``write(window, index)``,
+    ``index`` (h, w) uint16. Placed as :func:`open_block_writer` places the mosaic."""
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": width,
+        "height": height,
+        "count": 1,
+        "dtype": "uint16",
+        "nodata": 0,
+        "tiled": True,
+        "blockxsize": COG_BLOCK_PX,
+        "blockysize": COG_BLOCK_PX,
+        "BIGTIFF": "IF_SAFER",
+    }
+    if compress is not None:
+        profile["compress"] = compress
+    if transform is not None:
+        profile["transform"] = Affine(*transform)
+        if crs is not None:
+            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
+    with rasterio.open(path, "w", **profile) as dst:
+
+        def write(window: Window, index: np.ndarray) -> None:
+            dst.write(np.ascontiguousarray(index, np.uint16), 1, window=window)
+
+        yield write
+
+
+@contextmanager
+def open_index_reader(path: Path) -> Iterator[Callable[[Window], np.ndarray]]:
+    """``read(window)`` -> (h, w) uint16 of a raster :func:`open_index_writer` wrote."""
+    with rasterio.open(path) as src:
+        yield lambda window: src.read(1, window=window)
+
+
+def translate_index_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
+    """:func:`translate_to_cog` for a frame index: overviews by nearest neighbour (a frame number is not averaged),
+    horizontal differencing, nodata 0; JPEG (lossy) is never used for it: deflate instead."""
+    codec = "deflate" if compression == "jpeg" else compression
+    options: dict[str, Any] = {
+        "compress": codec.upper(),
+        "blocksize": COG_BLOCK_PX,
+        "num_threads": "ALL_CPUS",
+        "bigtiff": "IF_SAFER",
+        "predictor": 2,
+    }
+    if codec in ("deflate", "zstd"):
+        options["level"] = 1
+    with rasterio.Env(GDAL_CACHEMAX=256, GDAL_NUM_THREADS="ALL_CPUS"):
+        with rasterio.open(src, "r+") as scratch:
+            scratch.update_tags(**{**provenance_tags(), **(tags or {})})
+            levels = overview_levels(scratch.width, scratch.height)
+            if levels:
+                scratch.build_overviews(levels, Resampling.nearest)
+        with atomic_path(dst) as tmp:
+            rio_copy(str(src), str(tmp), driver="COG", overviews="FORCE_USE_EXISTING", **options)
+
+
 def write_array_cog(
     path: Path,
     band: np.ndarray,

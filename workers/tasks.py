@@ -42,6 +42,7 @@ from workers.pipeline import (
     forget_parts_if_stale,
     job_kind,
     overall_progress,
+    part_unit,
     parts_summary,
     pipeline_key,
     plan_stage,
@@ -117,11 +118,13 @@ class JobRecorder:
                 raise JobCancelledError(f"job {self.job_id} was cancelled")
             raise JobSupersededError(f"job {self.job_id} was taken over")
         now = time.monotonic()
-        if now - self._last < self.interval and fraction < 1.0:
+        count = parse_count(detail)
+        last_unit = count is not None and count.done == count.total  # the count a stage ends with is kept
+        if now - self._last < self.interval and fraction < 1.0 and not last_unit:
             return
         self._last = now
         current: dict[str, Any] = {"fraction": min(max(float(fraction), 0.0), 1.0)}
-        if (count := parse_count(detail)) is not None:
+        if count is not None:
             current.update(unit=count.unit, done=count.done, total=count.total)
         status = self.update(
             current, progress=overall_progress(self.pipeline, self.stage, fraction), progress_detail=detail
@@ -208,9 +211,11 @@ def execute_parts(
     with liveness.PartBeat(db, job_id, token, settings.heartbeat_seconds) as beat:
         rec = JobRecorder(db, job_id, pipeline, stage, beat=beat)
 
+        unit = part_unit(stages.stage_module(stage))
+
         def progress(_fraction: float, _detail: str) -> None:
             done = len(ws.parts_done(stage))
-            rec.progress(PLAN_SHARE + PARTS_SHARE * done / total, f"part {done}/{total}")
+            rec.progress(PLAN_SHARE + PARTS_SHARE * done / total, f"{unit} {done}/{total}")
 
         try:
             run_parts(stages.stage_module(stage), stage, ws, cfg, keys, progress)

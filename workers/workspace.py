@@ -88,6 +88,7 @@ REPORT_FIGURES = {
 }
 _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
+_FRAME_INDEX = "frame_index.tif"  # which frame each mosaic pixel was taken from: index + 1, 0 = none
 _FOOTPRINTS = "footprints.geojson"
 _GCP_POINTS = "gcps.geojson"  # the ground control points as the map has them (write_report)
 _CRACKS_GEOJSON = "cracks.geojson"
@@ -307,6 +308,10 @@ class JobWorkspace:
         """The GeoTIFF ``compose_mosaic`` writes block by block before it becomes the COG."""
         return self.root / "mosaic.tmp.tif"
 
+    def frame_index_scratch_path(self) -> Path:
+        """The frame index's GeoTIFF, block by block, before it becomes ``frame_index.tif``."""
+        return self.root / "frame_index.tmp.tif"
+
     # -- calibration jobs -----------------------------------------------------------------------
     def load_corners(self) -> dict[str, Any]:
         """Chessboard corners found per photo (``detect_corners``)."""
@@ -509,6 +514,11 @@ class JobWorkspace:
         """The mosaic COG (an output, read by the tile routes)."""
         return self.root / _MOSAIC
 
+    def frame_index_path(self) -> Path:
+        """COG (uint16) of the frame each mosaic pixel was taken from: its index + 1 (footprints' ``index``), 0 =
+        none (an output)."""
+        return self.root / _FRAME_INDEX
+
     def save_report_html(self, html: str, figures: dict[str, str]) -> None:
         """``report.html`` and its pictures (``REPORT_FIGURES`` name -> SVG text); a picture not given is removed."""
         for name in REPORT_FIGURES:
@@ -593,7 +603,7 @@ class JobWorkspace:
                 r / _GEOREF,
                 *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
             ],
-            "compose_mosaic": lambda: [r / _COVERAGE, self.mosaic_path()],
+            "compose_mosaic": lambda: [r / _COVERAGE, self.mosaic_path(), r / _FRAME_INDEX],
             "write_report": lambda: [r / _REPORT, r / _REPORT_HTML],
             "detect_corners": lambda: [r / _CORNERS],
             "calibrate_camera": lambda: [r / _CALIBRATION],
@@ -651,6 +661,10 @@ class JobWorkspace:
         """A band of mosaic rows from ``y`` that one part of ``compose_mosaic`` wrote (GeoTIFF, scratch)."""
         return self._parts_dir("compose_mosaic") / f"band_{y:07d}.tif"
 
+    def index_band_path(self, y: int) -> Path:
+        """The frame index of the band of rows from ``y`` (uint16 GeoTIFF, scratch), beside its pixels."""
+        return self._parts_dir("compose_mosaic") / f"index_{y:07d}.tif"
+
     def part_inputs_version(self, stage: str) -> int:
         """Changes whenever ``save_part_inputs`` writes again (its file's modification time, ns)."""
         return (self._parts_dir(stage) / "inputs.json").stat().st_mtime_ns
@@ -688,6 +702,7 @@ class JobWorkspace:
         """Downloadable outputs that exist, by public name."""
         names = [
             _MOSAIC,
+            _FRAME_INDEX,
             _DSM,
             _REPORT,
             _REPORT_HTML,

@@ -176,7 +176,8 @@ def load_step_tilejson(
     return _signed_tiles(data, db, settings, job_id)
 
 
-@router.get("/{job_id}/{layer}/{z}/{x}/{y}.png", responses=PNG)
+# under "stereo/": a bare ``/{job}/{layer}/{z}/{x}/{y}.png`` would take the tile matrix set routes' paths
+@router.get("/{job_id}/stereo/{layer}/{z}/{x}/{y}.png", responses=PNG)
 def stereo_tile(
     job_id: JobId,
     layer: Annotated[StereoLayer, PathParam(description=STEREO_LAYER)],
@@ -268,24 +269,10 @@ def _signed_tiles(tilejson: dict[str, Any], db: Any, settings: Any, job_id: int)
 # mosaic in that set, which QGIS reads to add it as a layer.
 
 
-@router.get("/{job_id}/{tms_id}/{z}/{x}/{y}.png", responses=PNG, name="tms_tile_png")
-def tms_tile_png(
-    job_id: JobId,
-    tms_id: TmsId,
-    z: TileIndex,
-    x: TileIndex,
-    y: TileIndex,
-    db: DbDep,
-    settings: SettingsDep,
-    tiler: TilerDep,
-    if_none_match: IfNoneMatch = None,
-) -> Response:
-    """The tile of ``/tiles/{job}/{z}/{x}/{y}.png``, named by its tile matrix set (only WebMercatorQuad)."""
-    _check_tms(tms_id)
-    return tile(job_id, z, x, y, db, settings, tiler, if_none_match)
-
-
+# the suffixed path first: routes match in the order they are added, and the decorator nearest the function adds
+# its route first (a bare ``{y}`` would take "3.png" and refuse it)
 @router.get("/{job_id}/{tms_id}/{z}/{x}/{y}", responses=PNG, name="tms_tile")
+@router.get("/{job_id}/{tms_id}/{z}/{x}/{y}.png", responses=PNG, name="tms_tile_png")
 def tms_tile(
     job_id: JobId,
     tms_id: TmsId,
@@ -297,8 +284,10 @@ def tms_tile(
     tiler: TilerDep,
     if_none_match: IfNoneMatch = None,
 ) -> Response:
-    """The same PNG tile without the suffix."""
-    return tms_tile_png(job_id, tms_id, z, x, y, db, settings, tiler, if_none_match)
+    """The tile of ``/tiles/{job}/{z}/{x}/{y}.png``, named by its tile matrix set (only WebMercatorQuad), with or
+    without the suffix."""
+    _check_tms(tms_id)
+    return tile(job_id, z, x, y, db, settings, tiler, if_none_match)
 
 
 @router.get("/{job_id}/{tms_id}/WMTSCapabilities.xml", name="wmts_capabilities", responses=WMTS_XML)

@@ -96,13 +96,13 @@ def test_rpc_pair_from_upload_to_tiles_and_points(client: TestClient, api_settin
 
     # the DSM's tiles: georeferenced, a PNG at its centre; the elevation there is the terrain's
     tilejson = client.get(f"/tiles/{job['id']}/dsm/tilejson.json").json()
-    assert tilejson["georeferenced"] is True and "/dsm/{z}/{x}/{y}.png" in tilejson["tiles"][0]
+    assert tilejson["georeferenced"] is True and "/stereo/dsm/{z}/{x}/{y}.png" in tilejson["tiles"][0]
     lon, lat = utm_to_lonlat(np.array([centre]), rpc_pair.epsg)[0]
     tile = WEB_MERCATOR.tile(lon, lat, tilejson["maxzoom"])
     signed = tilejson["tiles"][0].format(z=tile.z, x=tile.x, y=tile.y)  # as a map's image tags fetch it
     png_tile = client.get(signed, headers={"Authorization": ""})
     assert png_tile.status_code == 200 and png_tile.headers["content-type"] == "image/png"
-    unsigned = f"/tiles/{job['id']}/dsm/{tile.z}/{tile.x}/{tile.y}.png"
+    unsigned = f"/tiles/{job['id']}/stereo/dsm/{tile.z}/{tile.x}/{tile.y}.png"
     assert client.get(unsigned, headers={"Authorization": ""}).status_code == 401
     point_url = f"/tiles/{job['id']}/dsm/point?lon=1&lat=1&{signed.split('?')[1]}"
     assert client.get(point_url, headers={"Authorization": ""}).status_code == 401  # the token's, not a link's
@@ -115,7 +115,7 @@ def test_rpc_pair_from_upload_to_tiles_and_points(client: TestClient, api_settin
     # the disparity map: a pixel grid, with its value and confidence under a pixel
     grid = client.get(f"/tiles/{job['id']}/disparity/tilejson.json").json()
     assert grid["georeferenced"] is False
-    assert client.get(f"/tiles/{job['id']}/disparity/{grid['maxzoom']}/0/0.png").status_code == 200
+    assert client.get(f"/tiles/{job['id']}/stereo/disparity/{grid['maxzoom']}/0/0.png").status_code == 200
     value = client.get(f"/tiles/{job['id']}/disparity/point", params={"x": 120.5, "y": 110.5}).json()
     assert isinstance(value["disparity_px"], float) and 0.0 <= value["confidence"] <= 1.0
     assert client.get(f"/tiles/{job['id']}/disparity/point", params={"x": -5, "y": 3}).json()["disparity_px"] is None

@@ -88,9 +88,7 @@ def test_the_options_form_starts_a_job_with_what_was_chosen(signed_in_page, live
     files = [("files", (p.name, p.read_bytes(), "image/jpeg")) for p in photos[:3]]
     assert httpx.post(f"{url}/api/flights/{created['id']}/images", files=files, headers=headers, timeout=60).is_success
     page.goto(f"{url}/#/flights/{created['id']}")
-    expect(page.get_by_test_id("option-feature_type-default")).to_have_text(
-        "default: ORB corners (fast; planar mode's default)"
-    )
+    expect(page.get_by_test_id("option-feature_type-default")).to_have_text("default: ORB features")
     expect(page.get_by_test_id("option-working_max_px")).to_have_value("2048")
     page.get_by_test_id("mode-ortho").check()
     expect(page.get_by_test_id("option-feature_type")).to_have_value("sift")  # ortho's default

@@ -21,7 +21,7 @@ from tests.stereo_scenes import RpcPair, make_rectified_pair, make_rpc_pair
 
 pytestmark = pytest.mark.browser
 
-STEREO_TILE = re.compile(r"/tiles/\d+/(dsm|disparity)/\d+/\d+/\d+\.png\?")  # signed: ?exp=...&sig=...
+STEREO_TILE = re.compile(r"/tiles/\d+/stereo/(dsm|disparity)/\d+/\d+/\d+\.png\?")  # signed: ?exp=...&sig=...
 ELEVATION = re.compile(r"^(\d+\.\d\d) m \((measured|filled)\) at (-?\d+\.\d+), (-?\d+\.\d+)$")
 READOUT_SAYS_JS = """(pattern) => new RegExp(pattern).test(
   document.querySelector('[data-testid="point-readout"]').textContent)"""

@@ -41,13 +41,13 @@ def test_a_moving_object_stays_whole_on_one_side_of_the_seam() -> None:
     car = (slice(160, 184), slice(270, 310))  # output rows, columns
     with_car = images[1][100:124, 120:160][..., ::-1].astype(int)  # RGB, as the mosaic is
     without = images[0][160:184, 270:310][..., ::-1].astype(int)
-    rgb, mask = _multiband(images, sizes, to_frame, boxes, gains, (0, 0, W, H))
+    rgb, mask, _ = _multiband(images, sizes, to_frame, boxes, gains, (0, 0, W, H))
     got = rgb[car].astype(int)
     whole = min(np.abs(got - with_car).mean(), np.abs(got - without).mean())
     # all car or no car, not a ghost of both: the cut runs around it (its fine bands are the car's); its
     # coarsest bands, wider than the car, still carry some of the ground beside it (11 levels of 255 here)
     assert mask[car].all() and whole < 15.0, whole
-    feathered, _ = compose_block(images.__getitem__, sizes, to_frame, boxes, gains, (0, 0, W, H), 60.0)
+    feathered, _, _ = compose_block(images.__getitem__, sizes, to_frame, boxes, gains, (0, 0, W, H), 60.0)
     ghost = feathered[car].astype(int)
     assert min(np.abs(ghost - with_car).mean(), np.abs(ghost - without).mean()) > 40  # feathering: half of each
 
@@ -55,19 +55,21 @@ def test_a_moving_object_stays_whole_on_one_side_of_the_seam() -> None:
 def test_windows_never_show() -> None:
     """Composed window by window or in one piece, the same pixels: each window's margin holds its bands."""
     images, sizes, to_frame, boxes, gains = _two_frames(moving_object=False)
-    whole, whole_mask = _multiband(images, sizes, to_frame, boxes, gains, (0, 0, W, H))
+    whole, whole_mask, whole_index = _multiband(images, sizes, to_frame, boxes, gains, (0, 0, W, H))
     for x in range(0, W, 128):
         for y in range(0, H, 128):
             w, h = min(128, W - x), min(128, H - y)
-            part, part_mask = _multiband(images, sizes, to_frame, boxes, gains, (x, y, w, h))
+            part, part_mask, part_index = _multiband(images, sizes, to_frame, boxes, gains, (x, y, w, h))
             assert np.array_equal(part_mask, whole_mask[y : y + h, x : x + w])
             assert np.abs(part.astype(int) - whole[y : y + h, x : x + w].astype(int)).max() <= 1
+            assert np.array_equal(part_index, whole_index[y : y + h, x : x + w])  # the same seam owners
+    assert set(np.unique(whole_index[whole_mask]).tolist()) == {0, 1} and (whole_index[~whole_mask] == -1).all()
 
 
 def test_one_frame_comes_back_unchanged() -> None:
     images, sizes, to_frame, boxes, gains = _two_frames(moving_object=False)
     one = {0: images[0]}
-    rgb, mask = _multiband(one, {0: sizes[0]}, {0: to_frame[0]}, {0: boxes[0]}, {0: gains[0]}, (0, 0, 400, 300))
+    rgb, mask, _ = _multiband(one, {0: sizes[0]}, {0: to_frame[0]}, {0: boxes[0]}, {0: gains[0]}, (0, 0, 400, 300))
     assert mask.all()
     assert np.abs(rgb[..., ::-1].astype(int) - images[0].astype(int)).max() <= 1
 
@@ -93,8 +95,44 @@ def test_a_multiband_mosaic_shows_the_ground_where_it_lies(tmp_path) -> None:
         slack = 5 * report["gsd_m"] / 111_000
         assert outline[:, 0].min() - slack <= lon.min() and lon.max() <= outline[:, 0].max() + slack
         assert outline[:, 1].min() - slack <= lat.min() and lat.max() <= outline[:, 1].max() + slack
-    process_directory(tmp_path / "frames", tmp_path / "feather", {"working_max_px": 1024})
+    assert_frame_index_is_true(flight, ws, report)
+    feather = process_directory(tmp_path / "frames", tmp_path / "feather", {"working_max_px": 1024})
     assert "cutlines.geojson" not in JobWorkspace(tmp_path / "feather").outputs()  # feathering cuts no seams
+    assert feather["mosaic"]["seam_visibility"] is None  # nor measures them, unless asked (a second)
+    assert_frame_index_is_true(flight, JobWorkspace(tmp_path / "feather"), feather)
+    measured = process_directory(
+        tmp_path / "frames", tmp_path / "measured", {"working_max_px": 1024, "measure_seams": True}
+    )
+    # measured on the same seams: a feathered mosaic's ground is the same, its seams show about as little
+    assert 0 < measured["mosaic"]["seam_visibility"] < 1.3
+
+
+def assert_frame_index_is_true(flight, ws: JobWorkspace, report: dict) -> None:
+    """``frame_index.tif``: a uint16 COG on the mosaic's grid, 0 exactly where the mosaic has no data, and every
+    other value a frame (index + 1) that does see the pixel's ground (by the flight's true homographies)."""
+    import rasterio
+
+    assert "frame_index.tif" in ws.outputs()
+    with rasterio.open(ws.frame_index_path()) as src, rasterio.open(ws.mosaic_path()) as mosaic:
+        assert src.dtypes == ("uint16",) and src.nodata == 0 and src.overviews(1)
+        assert src.transform == mosaic.transform and src.crs == mosaic.crs
+        index, covered = src.read(1), mosaic.dataset_mask() > 0
+        names = {int(k.removeprefix("FRAME_")): v for k, v in src.tags().items() if k.startswith("FRAME_")}
+    assert np.array_equal(index > 0, covered)
+    frames = {f.index: f.name for f in ws.load_frames()}
+    assert set(np.unique(index[index > 0]).tolist()) == {k + 1 for k in frames}  # every frame gives pixels
+    assert names == {k + 1: name for k, name in frames.items()}
+    rows, cols = np.nonzero(index)
+    pick = np.random.default_rng(0).choice(len(rows), 3000)
+    east, north = rasterio.transform.xy(src.transform, rows[pick], cols[pick])
+    tex = np.column_stack([east, north, np.ones(len(pick))]) @ np.linalg.inv(flight.texture_to_utm).T
+    w, h = flight.frame_size
+    inside = []
+    for (tx, ty, _), value in zip(tex, index[rows[pick], cols[pick]], strict=True):
+        n = int(frames[int(value) - 1].removeprefix("frame_").removesuffix(".jpg"))
+        fx, fy, fw = np.linalg.inv(flight.homographies[n]) @ [tx, ty, 1.0]
+        inside.append(-2 <= fx / fw <= w + 1 and -2 <= fy / fw <= h + 1)  # a px or two of slack at the edge
+    assert np.mean(inside) == 1.0, np.mean(inside)
 
 
 def test_seam_visibility_sees_a_step_and_not_a_smooth_join() -> None:

@@ -90,7 +90,7 @@ def test_window_composition_matches_the_map_based_reference() -> None:
     boxes = {k: output_box(M, sizes[k], 600, 400) for k, M in to_frame.items()}
     gains = {k: np.ones(3) for k in images}
     for window in ((0, 0, 256, 256), (256, 128, 256, 256), (512, 256, 88, 144)):
-        rgb, mask = compose_block(images.__getitem__, sizes, to_frame, boxes, gains, window, 20.0)
+        rgb, mask, _ = compose_block(images.__getitem__, sizes, to_frame, boxes, gains, window, 20.0)
         bgr, ref_mask = _reference_block(images, sizes, to_frame, window, 20.0)
         assert np.array_equal(mask, ref_mask)
         expected = np.clip(np.rint(bgr), 0, 255).astype(np.uint8)  # to nearest, ties to even, as OpenCV rounds

@@ -1,10 +1,11 @@
 """Stage ``compose_mosaic``: warp, gain-compensate and blend the frames into a COG, window by window
 (:mod:`workers.algorithms.mosaic.compose`), a part per band of windows.
 
-The plan measures what every part shares: the gains and the coverage from a low-resolution render, and for a
-multiband mosaic the seams. Each part composes one band of rows (``block_px`` high) into a GeoTIFF of its own;
-the finish copies the bands into the scratch GeoTIFF, builds the overviews and writes the COG. Memory depends
-on the band's width and the frames' size, never on the size of the mosaic.
+The plan measures what every part shares: the gains and the coverage from a low-resolution render, and the
+seams (a multiband mosaic is cut along them; a feathered one's seam visibility is measured on them). Each part
+composes one band of rows (``block_px`` high) into a GeoTIFF of its own, and the band's frame index (which frame
+each pixel came from) into another; the finish copies the bands into the scratch GeoTIFFs, builds the overviews
+and writes both COGs. Memory depends on the band's width and the frames' size, never on the size of the mosaic.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from rasterio.windows import Window
 
 from workers.algorithms.mosaic import (
     SCRATCH_RAW_MAX_PX,
+    ccd_gains,
+    column_brightness,
     compose_block,
     compose_block_multiband,
     gains_and_coverage,
@@ -33,12 +36,23 @@ from workers.config import MosaicConfig
 from workers.parallel import RecentCache, ordered_map, thread_count
 from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
-from workers.raster_io import open_band_reader, open_block_writer, open_window_reader, translate_to_cog
+from workers.raster_io import (
+    open_band_reader,
+    open_block_writer,
+    open_index_reader,
+    open_index_writer,
+    open_window_reader,
+    translate_index_to_cog,
+    translate_to_cog,
+)
 from workers.records import Coverage, Frame
 from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress
 
 STAGE = "compose_mosaic"
 _PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes from (native resolution)
+
+
+PART_UNIT = "band"  # what a part is, in the progress
 
 
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
@@ -52,15 +66,32 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     )
     ws.save_coverage(Coverage(outline, area))
     shared: dict[str, Any] = {"gains": {str(k): g.tolist() for k, g in gains.items()}, "vignette": list(vignette)}
-    if cfg.blend == "multiband":
+    # the seams a multiband mosaic is cut along; a feathered one is measured on the same lines (not cut there),
+    # when asked to (measure_seams)
+    if _has_seams(cfg):
         labels, label_scale = seam_labels(working_of, sizes, to_frame, gains, geo.width, geo.height)
-        ws.save_seams(owned_regions(labels, label_scale))
         ws.save_part_arrays(STAGE, labels=labels)
         shared["label_scale"] = label_scale
+    if cfg.blend == "multiband":
+        ws.save_seams(owned_regions(labels, label_scale))
     else:
         ws.remove_seams()  # a feathered mosaic (again): no cut lines
+    if cfg.ccd_segments > 1:
+        shared["ccd_gains"] = _ccd_gains(ws, cfg.ccd_segments).tolist()
     ws.save_part_inputs(STAGE, shared)
     return [f"{y:07d}" for y in range(0, geo.height, cfg.block_px)]
+
+
+def _ccd_gains(ws: JobWorkspace, segments: int) -> np.ndarray:
+    """The gain of each CCD sub-image, from the native columns either side of every join of every frame."""
+    frames = ws.load_composed_frames()
+    widths = {f.orig_width for f in frames.values()}
+    if len(widths) != 1:
+        raise PipelineError("ccd_segments is for frames of one camera: these frames differ in width")
+    (width,) = widths
+    if width < 2 * segments:
+        raise PipelineError(f"frames {width} px wide cannot be joined from {segments} CCD sub-images")
+    return ccd_gains(lambda k, c0, c1: np.asarray(_photo(ws, frames, k)[:, c0:c1]), sorted(frames), width, segments)
 
 
 def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
@@ -78,15 +109,17 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
         sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
         image_of = partial(_photo, ws, frames)
     boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
+    steps = np.array(shared["ccd_gains"]) if "ccd_gains" in shared else None
+    columns = None if steps is None else {k: column_brightness(sizes[k][0], steps) for k in to_frame}
     if cfg.blend == "multiband":
         labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
 
-    def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def one(window: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if cfg.blend == "multiband":
             return compose_block_multiband(
-                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands, vignette
+                image_of, sizes, to_frame, boxes, gains, window, labels, label_scale, cfg.blend_bands, vignette, columns
             )
-        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette)
+        return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette, columns)
 
     height = min(cfg.block_px, geo.height - y)
     windows = [(x, y, min(cfg.block_px, geo.width - x), height) for x in range(0, geo.width, cfg.block_px)]
@@ -96,12 +129,15 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     inner = max(1, thread_count(cfg.threads) // max(1, min(bands, thread_count(cfg.threads))))
     with (
         atomic_path(ws.compose_band_path(y)) as tmp,
+        atomic_path(ws.index_band_path(y)) as tmp_index,
         open_block_writer(tmp, geo.width, height, None, None, compress=_codec(geo)) as write,
+        open_index_writer(tmp_index, geo.width, height, None, None, compress="deflate") as write_index,
     ):
-        for (x, _, w, h), pixels in zip(
+        for (x, _, w, h), (rgb, mask, index) in zip(
             windows, ordered_map(one, windows, inner, noop_progress, "window"), strict=True
         ):
-            write(Window(x, 0, w, h), *pixels)
+            write(Window(x, 0, w, h), rgb, mask)
+            write_index(Window(x, 0, w, h), _index_values(index))
     return {"rows": height}
 
 
@@ -111,26 +147,32 @@ def finish(
     """Copy the bands into the scratch GeoTIFF, then write ``mosaic.tif`` (COG, RGB + mask)."""
     geo = ws.load_georef()
     for key in records:  # bands deleted by a finish that was stopped after the COG: composed again here
-        if not ws.compose_band_path(int(key)).exists():
+        if not (ws.compose_band_path(int(key)).exists() and ws.index_band_path(int(key)).exists()):
             run_part(ws, cfg, key)
-    tmp = ws.mosaic_scratch_path()
+    tmp, tmp_index = ws.mosaic_scratch_path(), ws.frame_index_scratch_path()
     transform = geo.transform if geo.georeferenced else None
-    with open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write:
+    with (
+        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write,
+        open_index_writer(tmp_index, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write_index,
+    ):
         for n, key in enumerate(records):
-            y = int(key)
-            with open_band_reader(ws.compose_band_path(y)) as read:
+            y, height = int(key), int(records[key]["rows"])
+            with open_band_reader(ws.compose_band_path(y)) as read, open_index_reader(ws.index_band_path(y)) as index:
                 for x in range(0, geo.width, cfg.block_px):
                     width = min(cfg.block_px, geo.width - x)
-                    height = int(records[key]["rows"])
                     write(Window(x, y, width, height), *read(Window(x, 0, width, height)))
+                    write_index(Window(x, y, width, height), index(Window(x, 0, width, height)))
             progress(0.5 * (n + 1) / len(records), f"band {n + 1}/{len(records)}")
-    progress(0.5, "writing COG with overviews")
+    progress(0.5, "writing COGs with overviews")
+    frames = ws.load_composed_frames()
     description = f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"
     translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression, tags={"TIFFTAG_IMAGEDESCRIPTION": description})
+    translate_index_to_cog(tmp_index, ws.frame_index_path(), cfg.cog_compression, tags=_index_tags(frames))
     tmp.unlink(missing_ok=True)
+    tmp_index.unlink(missing_ok=True)
     shared = ws.load_part_inputs(STAGE)
     visibility = None
-    if cfg.blend == "multiband":
+    if _has_seams(cfg):
         progress(0.95, "measuring the seams")
         labels, label_scale = ws.load_part_arrays(STAGE)["labels"], float(shared["label_scale"])
         with open_window_reader(ws.mosaic_path()) as read_window:
@@ -138,7 +180,7 @@ def finish(
     ws.remove_native_images()
     for key in records:
         ws.compose_band_path(int(key)).unlink(missing_ok=True)
-    frames = ws.load_composed_frames()
+        ws.index_band_path(int(key)).unlink(missing_ok=True)
     vignette = shared["vignette"]
     progress(1.0, f"band {len(records)}/{len(records)}")
     return {
@@ -148,10 +190,29 @@ def finish(
         "output_resolution": cfg.output_resolution,
         "blend": cfg.blend,
         "vignetting": {"c1": vignette[0], "c2": vignette[1]} if cfg.vignetting_correction else None,
-        # multiband: colour step across the cut lines / the same 16 px beside them (1.0: invisible)
+        "ccd_gains": shared.get("ccd_gains"),  # of each CCD sub-image, left to right (ccd_segments)
+        # colour step across the cut lines / the same 16 px beside them (1.0: invisible); a feathered mosaic is
+        # measured on the lines a multiband one would be cut along
         "seam_visibility": visibility,
         "gains": {frames[int(k)].name: g for k, g in shared["gains"].items()},
     }
+
+
+def _index_values(index: np.ndarray) -> np.ndarray:
+    """(h, w) uint16 of the frame index file: frame index + 1, 0 where no frame is."""
+    return np.clip(index.astype(np.int64) + 1, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
+
+def _index_tags(frames: dict[int, Frame]) -> dict[str, str]:
+    """The frame index COG's description and, per value, the frame's name (``FRAME_<value>``)."""
+    tags = {"TIFFTAG_IMAGEDESCRIPTION": "Fotoskhema frame index: the frame each mosaic pixel was taken from, "
+            "its index + 1 (footprints.geojson's index); 0: none"}  # fmt: skip
+    tags.update({f"FRAME_{k + 1}": "".join(c if c.isprintable() else " " for c in f.name) for k, f in frames.items()})
+    return tags
+
+
+def _has_seams(cfg: MosaicConfig) -> bool:
+    return cfg.blend == "multiband" or cfg.measure_seams
 
 
 def _working_geometry(ws: JobWorkspace) -> tuple[dict[int, tuple[int, int]], dict[int, np.ndarray]]:

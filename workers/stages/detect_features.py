@@ -13,6 +13,8 @@ from workers.config import MosaicConfig
 from workers.parallel import thread_count
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
+PART_UNIT = "frame"  # what a part is, in the progress
+
 
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     """A part per frame of ``frames.json``."""

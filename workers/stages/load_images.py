@@ -25,6 +25,9 @@ EXIF_FIELDS = (
 )
 
 
+PART_UNIT = "frame"  # what a part is, in the progress
+
+
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     """A part per input photo."""
     return [f"{k:05d}" for k in range(len(ws.load_inputs()))]

@@ -40,6 +40,9 @@ FrameFeatures = tuple[np.ndarray, np.ndarray, SearchIndex | None]  # points, des
 _FEATURES: RecentCache[FrameFeatures] = RecentCache(64)  # by (job folder, frame), for this process's pairs
 
 
+PART_UNIT = "pair"  # what a part is, in the progress
+
+
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     """A part per candidate pair: flight order plus GPS neighbours when every frame has GPS, all pairs for up to
     ``exhaustive_max_frames`` frames without."""

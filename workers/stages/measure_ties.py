@@ -40,6 +40,9 @@ GUIDED_REFINE_PX = 4  # the same about a pair's own model
 _INPUTS: RecentCache[dict[str, Any]] = RecentCache(4)  # the plan's inputs, read once per process and plan
 
 
+PART_UNIT = "pair"  # what a part is, in the progress
+
+
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     """A part per pair to measure; the homography each is measured about is saved for the parts."""
     if not cfg.guided_matching:

@@ -36,6 +36,12 @@ from .blending import (
 from .blending import (
     warp_maps as warp_maps,
 )
+from .ccd import (
+    ccd_gains as ccd_gains,
+)
+from .ccd import (
+    column_brightness as column_brightness,
+)
 from .compose import (
     compose_block as compose_block,
 )
@@ -125,6 +131,9 @@ from .multiband import (
 )
 from .multiband import (
     blend_bands as blend_bands,
+)
+from .multiband import (
+    label_window as label_window,
 )
 from .multiband import (
     margin_px as margin_px,

@@ -47,8 +47,13 @@ def feather_weights(map_x: np.ndarray, map_y: np.ndarray, width: int, height: in
     -------
     (H, W) float32 in [0, 1].
     """
-    edge = np.minimum(np.minimum(map_x + 0.5, map_y + 0.5), np.minimum(width - 0.5 - map_x, height - 0.5 - map_y))
-    return np.clip(edge / np.float32(ramp_px), 0.0, 1.0).astype(np.float32)
+    return np.clip(edge_distance(map_x, map_y, width, height) / np.float32(ramp_px), 0.0, 1.0).astype(np.float32)
+
+
+def edge_distance(map_x: np.ndarray, map_y: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Distance, frame px, from source coordinates (OpenCV centres) to the nearest edge of a ``width`` x
+    ``height`` frame: positive inside, negative outside. Same shape as the maps."""
+    return np.minimum(np.minimum(map_x + 0.5, map_y + 0.5), np.minimum(width - 0.5 - map_x, height - 0.5 - map_y))
 
 
 def overlap_statistics(images: list[np.ndarray], masks: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

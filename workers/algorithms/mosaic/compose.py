@@ -13,13 +13,14 @@ import numpy as np
 
 from workers.algorithms.mosaic.alignment import apply_homography, frame_corners
 from workers.algorithms.mosaic.blending import (
+    edge_distance,
     feather_weights,
     gain_compensation,
     overlap_statistics,
     warp_maps,
     warp_maps_strided,
 )
-from workers.algorithms.mosaic.multiband import blend_bands, margin_px, ownership
+from workers.algorithms.mosaic.multiband import blend_bands, label_window, margin_px, ownership
 from workers.algorithms.mosaic.vignetting import falloff, fit_vignetting, radius2
 
 OVERVIEW_PX = 768  # longest side of the low-resolution render used for gains and the footprint
@@ -33,6 +34,9 @@ def output_box(to_frame: np.ndarray, size: tuple[int, int], width: int, height: 
     return max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
 
 
+Columns = dict[int, np.ndarray]  # frame -> (width,) float32 brightness of each of its columns (CCD gain undone)
+
+
 def compose_block(
     image_of: Callable[[int], np.ndarray],
     sizes: dict[int, tuple[int, int]],
@@ -42,47 +46,55 @@ def compose_block(
     window: tuple[int, int, int, int],
     feather_px: float,
     vignette: tuple[float, float] = (0.0, 0.0),
-) -> tuple[np.ndarray, np.ndarray]:
+    columns: Columns | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One output window ``(x, y, w, h)``: every frame that reaches it warped, gain-corrected and feathered
-    (and its lens fall-off ``vignette`` undone, :func:`~workers.algorithms.mosaic.vignetting.falloff`).
+    (and its lens fall-off ``vignette`` undone, :func:`~workers.algorithms.mosaic.vignetting.falloff`, and its
+    columns brightened by ``columns[k]``, a strip camera's CCD sub-images evened out).
 
     ``image_of(k)`` gives frame ``k``'s (H, W, 3) uint8 BGR pixels, ``sizes[k]`` its (W, H); ``to_frame[k]`` maps
     output px to its px (memory-mapped: only the rows and columns
-    the window needs are read). Returns (h, w, 3) uint8 RGB and (h, w) bool coverage.
+    the window needs are read). Returns (h, w, 3) uint8 RGB, (h, w) bool coverage and (h, w) int32 frame index:
+    the frame of largest weight at each pixel (the one whose edge is farthest where several weigh 1; -1: none).
 
     Each frame is warped only over the part of the window its box covers, by ``cv2.warpPerspective``
     (the same bilinear sampling as ``cv2.remap`` on :func:`warp_maps`, without building the maps), and its
-    feathering weight comes from :func:`_feather_window`. The products, sums and the final division are
+    feathering weight comes from :func:`_edge_distance`. The products, sums and the final division are
     OpenCV's SIMD array operations: NumPy's broadcasting of a (h, w) weight over 3 channels cost as much
     as the warps (measured on the Brighton strip: 1.4 s -> 0.9 s of CPU for its 16 windows).
     """
     x, y, w, h = window
     acc = np.zeros((h, w, 3), np.float32)
     wsum = np.zeros((h, w), np.float32)
+    nearest = np.zeros((h, w), np.float32)  # the largest edge distance so far
+    index = np.full((h, w), -1, np.int32)
     for k, (bx0, by0, bx1, by1) in boxes.items():
         sx0, sy0, sx1, sy1 = max(bx0, x), max(by0, y), min(bx1, x + w), min(by1, y + h)
         if sx1 <= sx0 or sy1 <= sy0:
             continue
         sub = (sx0, sy0, sx1 - sx0, sy1 - sy0)
-        if vignette == (0.0, 0.0):
-            weight, rho2 = _edge_weight(to_frame[k], sub, *sizes[k], feather_px), None
-        else:
-            weight, rho2 = _feather_window(to_frame[k], sub, *sizes[k], feather_px, with_radius=True)
+        edge, rho2 = _edge_and_radius(to_frame[k], sub, *sizes[k], vignette != (0.0, 0.0))
+        weight = np.clip(edge * np.float32(1.0 / feather_px), 0.0, 1.0)
         if not cv2.countNonZero(weight):
             continue
         pixels = _warp(image_of(k), to_frame[k], sub)
         g = gains[k].astype(np.float32)
-        scaled = weight if rho2 is None else weight / falloff(rho2, vignette)  # brightness, not blending weight
+        brightness = _brightness(to_frame[k], sub, rho2, vignette, None if columns is None else columns[k])
+        scaled = weight if brightness is None else weight * brightness  # brightness, not blending weight
         weighted = cv2.multiply(pixels, cv2.merge([scaled * g[0], scaled * g[1], scaled * g[2]]), dtype=cv2.CV_32F)
         rows, cols = slice(sy0 - y, sy1 - y), slice(sx0 - x, sx1 - x)
         acc_view, wsum_view = acc[rows, cols], wsum[rows, cols]
         cv2.add(acc_view, weighted, dst=acc_view)
         cv2.add(wsum_view, weight, dst=wsum_view)
+        deeper = edge > nearest[rows, cols]
+        nearest[rows, cols][deeper] = edge[deeper]
+        index[rows, cols][deeper] = k
     mask = wsum > 0
+    index[~mask] = -1
     inverse = cv2.divide(1.0, np.maximum(wsum, np.float32(1e-6)))
     # where no frame reaches, acc is 0 and so is the pixel; convertScaleAbs rounds and saturates to uint8
     bgr = cv2.convertScaleAbs(cv2.multiply(acc, cv2.merge([inverse, inverse, inverse])))
-    return bgr[..., ::-1], mask
+    return bgr[..., ::-1], mask, index
 
 
 def compose_block_multiband(
@@ -96,80 +108,170 @@ def compose_block_multiband(
     label_scale: float,
     bands: int,
     vignette: tuple[float, float] = (0.0, 0.0),
-) -> tuple[np.ndarray, np.ndarray]:
+    columns: Columns | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`compose_block` with seams and multiband blending (:mod:`~workers.algorithms.mosaic.multiband`):
-    each frame that owns part of the window, warped over the window and a margin, blended band by band by
-    its ownership (``labels`` at ``label_scale``). Same returns."""
+    each frame that owns part of the window or its margin (``labels`` at ``label_scale``), warped over both,
+    blended band by band by its ownership. Same returns; the frame index is the seam's owner.
+
+    Only the owners are blended: a frame that reaches the window but owns nothing near it adds only where no
+    owner covers a pixel (the low-resolution cut's edge). A window whose margin one frame owns alone is that
+    frame's pixels, warped over the window only: the blend of a single image is the image (most windows of a
+    mosaic lie away from its cut lines; on the Brighton strip this made multiband ~2x cheaper).
+    """
     x, y, w, h = window
     m = margin_px(bands)
     padded = (x - m, y - m, w + 2 * m, h + 2 * m)
-    images, weights = [], []
-    covered = np.zeros((h, w), bool)
+    centre = (slice(m, m + h), slice(m, m + w))
+    near = label_window(labels, label_scale, padded)
+    present = set(np.unique(near[0]).tolist())
+    found: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]] = []  # frame, edge, rho2, ownership
     for k, (bx0, by0, bx1, by1) in boxes.items():
         if min(bx1, x + w + m) <= max(bx0, x - m) or min(by1, y + h + m) <= max(by0, y - m):
             continue
-        edge, rho2 = _feather_window(to_frame[k], padded, *sizes[k], 1.0, with_radius=vignette != (0.0, 0.0))
-        valid = edge > 0
-        if not valid.any():
+        edge, rho2 = _edge_and_radius(to_frame[k], padded, *sizes[k], vignette != (0.0, 0.0))
+        if not cv2.countNonZero((edge > 0).view(np.uint8)):
             continue
-        covered |= valid[m : m + h, m : m + w]
+        found.append((k, edge, rho2, ownership(labels, label_scale, k, padded, near) if k in present else None))
+    covered = np.zeros((h, w), bool)
+    owned = np.zeros((h + 2 * m, w + 2 * m), np.float32)
+    for _, edge, _, own in found:
+        covered |= edge[centre] > 0
+        if own is not None:
+            owned += own * (edge > 0)
+    orphans = (owned == 0) & np.any([edge > 0 for _, edge, _, _ in found], axis=0) if found else owned > 0
+    blend = [f for f in found if (f[3] is not None and f[3].any()) or (orphans & (f[1] > 0)).any()]
+    if not blend:
+        return np.zeros((h, w, 3), np.uint8), covered, np.full((h, w), -1, np.int32)
+    if len(blend) == 1:
+        k, edge, rho2, _ = blend[0]
+        return _single_frame(image_of(k), to_frame[k], window, gains[k], edge[centre], rho2, vignette, columns, k)
+    images, weights = [], []
+    for k, edge, rho2, own in blend:
+        valid = (edge > 0).astype(np.float32)
         # a pixel the low-resolution cut left to no frame (at the render's edge) still gets its covering frames
-        weight = ownership(labels, label_scale, k, padded) * valid + np.float32(1e-3) * valid
-        if weight.max() <= 2e-3 and not valid[m : m + h, m : m + w].any():
-            continue
-        g = gains[k].astype(np.float32)
-        warped = _warp(image_of(k), to_frame[k], padded).astype(np.float32)
-        scale = np.ones(warped.shape[:2], np.float32) if rho2 is None else 1.0 / falloff(rho2, vignette)
-        images.append(cv2.multiply(warped, cv2.merge([scale * v for v in g])))
-        weights.append(weight.astype(np.float32))
-    if not images:
-        return np.zeros((h, w, 3), np.uint8), covered
-    blended = blend_bands(images, weights, bands)[m : m + h, m : m + w]
+        weights.append(valid * np.float32(1e-3) + (valid * own if own is not None else 0.0))
+        warped = _warp(image_of(k), to_frame[k], padded)
+        images.append(_brightened(warped, gains[k], to_frame[k], padded, rho2, vignette, columns, k))
+    blended = blend_bands(images, weights, bands)[centre]
     bgr = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
     bgr[~covered] = 0
-    return bgr[..., ::-1], covered
+    index = np.array([k for k, *_ in blend], np.int32)[np.argmax([wt[centre] for wt in weights], axis=0)]
+    index[~covered] = -1
+    return bgr[..., ::-1], covered, index
 
 
-FEATHER_STEP_PX = 8  # _feather_window: the edge distance is evaluated every this many output px
-
-
-def _feather_window(
+def _single_frame(
+    image: np.ndarray,
     to_frame: np.ndarray,
     window: tuple[int, int, int, int],
-    width: int,
-    height: int,
-    ramp_px: float,
-    with_radius: bool = False,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """(h, w) float32 feathering weight of a ``width`` x ``height`` frame over an output ``window``:
-    :func:`feather_weights` of :func:`warp_maps`, with the maps computed every ``FEATHER_STEP_PX`` output px
-    and interpolated bilinearly in between.
+    gain: np.ndarray,
+    edge: np.ndarray,
+    rho2: np.ndarray | None,
+    vignette: tuple[float, float],
+    columns: Columns | None,
+    k: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A window one frame owns with its margin: its pixels, gain-corrected and brightened, where it is."""
+    covered = edge > 0
+    if not covered.any():  # it owns only some of the margin
+        return np.zeros((*covered.shape, 3), np.uint8), covered, np.full(covered.shape, -1, np.int32)
+    m = (rho2.shape[0] - window[3]) // 2 if rho2 is not None else 0
+    radius = None if rho2 is None else rho2[m : m + window[3], m : m + window[2]]
+    pixels = _brightened(_warp(image, to_frame, window), gain, to_frame, window, radius, vignette, columns, k)
+    bgr = np.clip(pixels + 0.5, 0, 255).astype(np.uint8)
+    bgr[~covered] = 0
+    return bgr[..., ::-1], covered, np.where(covered, np.int32(k), np.int32(-1))
 
-    A homography's maps are smooth (exactly linear for an affine map), so the interpolation moves them by
-    a small fraction of a px over a few px of perspective curvature; the weight is then found from them at
-    full resolution, so the creases of the distance to the frame's edge stay sharp. Building the
-    full-resolution maps in float64 cost a third of composing.
+
+def _brightened(
+    warped: np.ndarray,
+    gain: np.ndarray,
+    to_frame: np.ndarray,
+    window: tuple[int, int, int, int],
+    rho2: np.ndarray | None,
+    vignette: tuple[float, float],
+    columns: Columns | None,
+    k: int,
+) -> np.ndarray:
+    """(h, w, 3) float32: warped uint8 pixels times the frame's gain and :func:`_brightness`."""
+    g = [float(v) for v in gain]
+    brightness = _brightness(to_frame, window, rho2, vignette, None if columns is None else columns[k])
+    if brightness is None:
+        return cv2.multiply(warped, (g[0], g[1], g[2], 0.0), dtype=cv2.CV_32F)
+    return cv2.multiply(warped, cv2.merge([brightness * v for v in g]), dtype=cv2.CV_32F)
+
+
+def _brightness(
+    to_frame: np.ndarray,
+    window: tuple[int, int, int, int],
+    rho2: np.ndarray | None,
+    vignette: tuple[float, float],
+    column_profile: np.ndarray | None,
+) -> np.ndarray | None:
+    """(h, w) float32 factor that undoes the lens fall-off (from ``rho2``) and a column's CCD gain over an output
+    ``window``; None when there is neither."""
+    factor = None if rho2 is None or vignette == (0.0, 0.0) else 1.0 / falloff(rho2, vignette)
+    if column_profile is not None:
+        along = _column_window(column_profile, to_frame, window)
+        factor = along if factor is None else factor * along
+    return factor
+
+
+def _column_window(profile: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w) float32: a frame's per-column ``profile`` (W,) at each pixel of an output ``window`` (bilinear
+    across columns, as the pixels are sampled): a one-row image warped with its border replicated down."""
+    x, y, w, h = window
+    corners = np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]], np.float64)
+    src = apply_homography(to_frame, corners)
+    c0 = max(int(np.floor(src[:, 0].min())) - 1, 0)
+    c1 = min(int(np.ceil(src[:, 0].max())) + 2, len(profile))
+    if c1 <= c0:
+        return np.full((h, w), profile[0 if c0 == 0 else -1], np.float32)
+    row = np.ascontiguousarray(profile[None, c0:c1], np.float32)
+    shift_out = np.array([[1.0, 0.0, x + 0.5], [0.0, 1.0, y + 0.5], [0.0, 0.0, 1.0]])
+    shift_crop = np.array([[1.0, 0.0, -c0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    return cv2.warpPerspective(row, shift_crop @ to_frame @ shift_out, (w, h), flags=flags,
+                               borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
+
+
+FEATHER_STEP_PX = 8  # _edge_and_radius: the maps are evaluated every this many output px
+
+
+def _edge_and_radius(
+    to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int, with_radius: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """(h, w) float32 distance of each pixel of an output ``window`` to the nearest edge of a ``width`` x
+    ``height`` frame (frame px; <= 0 outside it) and, ``with_radius``, its rho^2 in the frame
+    (:func:`~workers.algorithms.mosaic.vignetting.radius2`).
+
+    With the radius, the frame coordinates are computed every ``FEATHER_STEP_PX`` output px and interpolated
+    bilinearly in between (a homography's maps are smooth: exactly linear for an affine map, so this moves them
+    by a small fraction of a px; building the full-resolution maps in float64 cost a third of composing); the
+    distance is then found from them at full resolution, so its creases stay sharp. Without it,
+    :func:`_edge_distance`.
     """
+    if not with_radius:
+        return _edge_distance(to_frame, window, width, height), None
     x, y, w, h = window
     step = FEATHER_STEP_PX
     coarse = cv2.merge(warp_maps_strided(to_frame, x, y, w // step + 2, h // step + 2, step))
     # fine pixel (i, j) sits at coarse position (i / step, j / step)
     zoom = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
     fine = cv2.warpAffine(coarse, zoom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    weight = feather_weights(fine[..., 0], fine[..., 1], width, height, ramp_px)
-    return weight, radius2(fine[..., 0], fine[..., 1], width, height) if with_radius else None
+    edge = edge_distance(fine[..., 0], fine[..., 1], width, height)
+    return edge, radius2(fine[..., 0], fine[..., 1], width, height)
 
 
-def _edge_weight(
-    to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int, ramp_px: float
-) -> np.ndarray:
-    """:func:`_feather_window`'s weight, by warping the frame's distance to its nearest edge.
+def _edge_distance(to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int) -> np.ndarray:
+    """(h, w) float32 distance to the frame's nearest edge over an output ``window``, by warping that distance.
 
-    That distance is the lower envelope of four planes in frame pixels, so the bilinear resampling of
+    It is the lower envelope of four planes in frame pixels, so the bilinear resampling of
     ``cv2.warpPerspective`` reproduces it exactly except within a pixel of the creases where two edges are
     equally near (the frame's diagonals near its corners), where it is slightly lower. It is built over the
     frame pixels the window maps onto (not clamped to the frame: negative outside, so the weight's edge falls
-    where the distance is 0, as the map-based weight's does) from two 1-D profiles, and costs one warp where
+    where the distance is 0, as the map-based one's does) from two 1-D profiles, and costs one warp where
     building and interpolating the coordinate maps cost three times that.
     """
     x, y, w, h = window
@@ -184,9 +286,8 @@ def _edge_weight(
     shift_out = np.array([[1.0, 0.0, x + 0.5], [0.0, 1.0, y + 0.5], [0.0, 0.0, 1.0]])
     shift_crop = np.array([[1.0, 0.0, -c0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]])
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    warped = cv2.warpPerspective(distance, shift_crop @ to_frame @ shift_out, (w, h), flags=flags,
-                                 borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
-    return np.clip(warped * np.float32(1.0 / ramp_px), 0.0, 1.0)
+    return cv2.warpPerspective(distance, shift_crop @ to_frame @ shift_out, (w, h), flags=flags,
+                               borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
 
 
 def _warp(image: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:

@@ -94,13 +94,33 @@ def margin_px(bands: int) -> int:
     return int(sum(2 ** (level + 1) for level in range(bands + 1))) + 2**bands
 
 
-def ownership(labels: np.ndarray, scale: float, k: int, window: tuple[int, int, int, int]) -> np.ndarray:
-    """(h, w) float32 in [0, 1]: where frame ``k`` owns output ``window``, the low-resolution labels brought
-    to full resolution bilinearly (a seam a few output px wide, which the bands then shape)."""
+LabelWindow = tuple[np.ndarray, int, int]  # labels' cells, the column and row of its first cell
+
+
+def label_window(labels: np.ndarray, scale: float, window: tuple[int, int, int, int]) -> LabelWindow:
+    """The cells of the low-resolution ``labels`` (at ``scale``) that an output ``window``'s bilinear
+    :func:`ownership` reads, with a cell to spare: (cells, first column, first row). At the labels' edge, the
+    edge cells (which the warp replicates)."""
     x, y, w, h = window
-    owned = (labels == k).astype(np.float32)
+    lh, lw = labels.shape
+    lx0 = min(max(int(np.floor((x + 0.5) * scale - 0.5)) - 1, 0), lw - 1)
+    ly0 = min(max(int(np.floor((y + 0.5) * scale - 0.5)) - 1, 0), lh - 1)
+    lx1 = max(min(int(np.floor((x + w - 0.5) * scale - 0.5)) + 3, lw), lx0 + 1)
+    ly1 = max(min(int(np.floor((y + h - 0.5) * scale - 0.5)) + 3, lh), ly0 + 1)
+    return labels[ly0:ly1, lx0:lx1], lx0, ly0
+
+
+def ownership(
+    labels: np.ndarray, scale: float, k: int, window: tuple[int, int, int, int], near: LabelWindow | None = None
+) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: where frame ``k`` owns output ``window``, the low-resolution labels brought
+    to full resolution bilinearly (a seam a few output px wide, which the bands then shape). ``near``: the
+    window's :func:`label_window`, when already cut."""
+    x, y, w, h = window
+    cells, lx0, ly0 = label_window(labels, scale, window) if near is None else near
+    owned = (cells == k).astype(np.float32)
     # output pixel centre (x + i + 0.5) -> low-res pixel centre coordinate (x + i + 0.5) * scale - 0.5
-    M = np.array([[scale, 0.0, (x + 0.5) * scale - 0.5], [0.0, scale, (y + 0.5) * scale - 0.5]])
+    M = np.array([[scale, 0.0, (x + 0.5) * scale - 0.5 - lx0], [0.0, scale, (y + 0.5) * scale - 0.5 - ly0]])
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     return cv2.warpAffine(owned, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
 

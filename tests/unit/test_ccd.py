@@ -1,0 +1,52 @@
+"""A strip camera's CCD gain steps, measured in the frames' own rows and undone in the mosaic."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+
+from tests.strip_scenes import SyntheticStrip, make_strip
+from workers.algorithms.mosaic import ccd_gains, column_brightness, compose_block, output_box
+from workers.algorithms.mosaic.ccd import _row_steps, join_columns
+
+WIDTH, HEIGHT, SEGMENTS = 6400, 400, 32
+
+
+@pytest.fixture(scope="module")
+def strip(tmp_path_factory: pytest.TempPathFactory) -> tuple[SyntheticStrip, list[np.ndarray]]:
+    """Three JPEG-in-TIFF frames (quality 90) whose 32 sub-images carry gains within +-3 %, as the camera's do."""
+    strip = make_strip(tmp_path_factory.mktemp("ccd"), 3, frame_size=(WIDTH, HEIGHT), ccd_step=0.03, seed=3)
+    frames = []
+    for path in strip.paths:
+        with rasterio.open(path) as src:
+            frames.append(np.moveaxis(src.read(), 0, 2)[..., ::-1].copy())  # BGR, as the pipeline reads photos
+    return strip, frames
+
+
+def test_the_gains_are_found_from_the_rows(strip) -> None:
+    truth, frames = strip
+    found = ccd_gains(lambda k, c0, c1: frames[k][:, c0:c1], [0, 1, 2], WIDTH, SEGMENTS)
+    error = np.log(found) - (np.log(truth.ccd_gains) - np.log(truth.ccd_gains).mean())
+    # each step (what shows) to a tenth of its size; the gains drift a little as the steps add up from the left
+    assert np.abs(np.diff(error)).mean() < 0.1 * np.abs(np.diff(np.log(truth.ccd_gains))).mean()
+    assert np.abs(error).max() < 0.02, error
+    flat = [np.full_like(f, 120) for f in frames]  # no steps at all: none found
+    assert np.allclose(ccd_gains(lambda k, c0, c1: flat[k][:, c0:c1], [0, 1, 2], WIDTH, SEGMENTS), 1.0)
+
+
+def test_the_steps_are_undone_in_the_mosaic(strip) -> None:
+    truth, frames = strip
+    found = ccd_gains(lambda k, c0, c1: frames[k][:, c0:c1], [0, 1, 2], WIDTH, SEGMENTS)
+    to_frame = {0: np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])}  # output px -> frame 0 px
+    sizes = {0: (WIDTH, HEIGHT)}
+    boxes = {0: output_box(to_frame[0], sizes[0], WIDTH, HEIGHT)}
+    args = (frames.__getitem__, sizes, to_frame, boxes, {0: np.ones(3)}, (0, 0, WIDTH, HEIGHT), 20.0)
+    plain, _, _ = compose_block(*args)
+    evened, _, _ = compose_block(*args, columns={0: column_brightness(WIDTH, found)})
+
+    def steps(rgb: np.ndarray) -> float:
+        inner = rgb[40:-40]  # away from the feathered edge
+        return float(np.mean([abs(np.median(_row_steps(inner[:, j - 2 : j + 2]))) for j in join_columns(WIDTH, 32)]))
+
+    assert steps(evened) < 0.15 * steps(plain), (steps(evened), steps(plain))
