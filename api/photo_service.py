@@ -52,6 +52,11 @@ def flight_detail(db: Database, settings: Settings, flight_id: int) -> FlightDet
         )
 
 
+def judged_image(db: Database, settings: Settings, flight_id: int, image_id: int) -> ImageOut | None:
+    """One photo as ``flight_detail`` answers it (judged against its flight, its preview signed)."""
+    return next((i for i in flight_detail(db, settings, flight_id).images if i.id == image_id), None)
+
+
 def judged_images(s: Session, settings: Settings, flight: Flight, signature: str) -> list[ImageOut]:
     """Every photo of ``flight`` as ``ImageOut``, with its position's source and the check's issues."""
     try:
