@@ -141,7 +141,14 @@ def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_se
         assert record["stage"] == stage and stage in record["timings"]
     assert status == "succeeded" and progress == sorted(progress) and progress[-1] == 100
     names = {o["name"] for o in client.get(f"/api/jobs/{job['id']}/outputs").json()["outputs"]}
-    assert names == {"mosaic.tif", "frame_index.tif", "report.json", "footprints.geojson", "report.html", *REPORT_FIGURES}
+    assert names == {
+        "mosaic.tif",
+        "frame_index.tif",
+        "report.json",
+        "footprints.geojson",
+        "report.html",
+        *REPORT_FIGURES,
+    }
     cog = client.get(f"/api/jobs/{job['id']}/outputs/mosaic.tif")
     assert cog.status_code == 200 and cog.content[:4] in (b"II*\x00", b"II+\x00")
     assert client.get(f"/api/jobs/{job['id']}/outputs/config.json").status_code == 404  # only named outputs
