@@ -125,7 +125,7 @@ def judge(photos: list[PhotoFacts]) -> dict[int, list[dict[str, str]]]:
     with_gps = sum(p.has_gps for p in photos)
     sizes = Counter((p.width, p.height) for p in photos)
     ((usual, usual_count),) = sizes.most_common(1) or [((0, 0), 0)]
-    hashes: list[tuple[str, str]] = []
+    earlier = HashIndex()
     for p in photos:
         found = issues[p.key]
         if p.quality is None:
@@ -133,10 +133,10 @@ def judge(photos: list[PhotoFacts]) -> dict[int, list[dict[str, str]]]:
         else:
             # a dark or washed-out photo has little contrast, so little Laplacian too: the exposure says why
             found.extend(_exposure(p.quality) or _blur(p.quality, median))
-            twin = next((name for name, h in hashes if hamming(h, p.quality["phash"]) <= DUPLICATE_BITS), None)
+            twin = earlier.near(str(p.quality["phash"]))
             if twin is not None:
                 found.append(_issue("duplicate", f"the same picture as {twin} (perceptual hashes all but alike)"))
-            hashes.append((p.name, str(p.quality["phash"])))
+            earlier.add(str(p.quality["phash"]), p.name)
         if not p.has_gps and with_gps:
             found.append(_issue("no_gps", f"no GPS position, unlike {with_gps} other photo(s) of the flight"))
         if (p.width, p.height) != usual and usual_count > len(photos) / 2:
@@ -148,6 +148,38 @@ def judge(photos: list[PhotoFacts]) -> dict[int, list[dict[str, str]]]:
                 )
             )
     return issues
+
+
+class HashIndex:
+    """Hashes seen so far, found again within ``DUPLICATE_BITS`` without comparing every pair: the 64 bits are cut
+    into ``DUPLICATE_BITS + 1`` bands, and two hashes that differ in at most that many bits agree on a whole band
+    (pigeonhole), so only the hashes sharing a band with the new one are compared (a flight of 20 000 photos is
+    judged in well under a second instead of 2e8 comparisons)."""
+
+    BANDS = DUPLICATE_BITS + 1
+
+    def __init__(self) -> None:
+        self.buckets: dict[tuple[int, int], list[tuple[int, str, str]]] = {}  # band -> (order added, hash, name)
+        self.count = 0
+
+    def _keys(self, phash: str) -> list[tuple[int, int]]:
+        value, width = int(phash, 16), -(-64 // self.BANDS)
+        return [(b, (value >> (b * width)) & ((1 << width) - 1)) for b in range(self.BANDS)]
+
+    def near(self, phash: str) -> str | None:
+        """The name of the first hash added within ``DUPLICATE_BITS`` of ``phash``, or None."""
+        found = [
+            (order, name)
+            for key in self._keys(phash)
+            for order, other, name in self.buckets.get(key, [])
+            if hamming(other, phash) <= DUPLICATE_BITS
+        ]
+        return min(found)[1] if found else None
+
+    def add(self, phash: str, name: str) -> None:
+        for key in self._keys(phash):
+            self.buckets.setdefault(key, []).append((self.count, phash, name))
+        self.count += 1
 
 
 def _issue(code: str, message: str) -> dict[str, str]:

@@ -16,7 +16,7 @@ from PIL import Image
 from tests.conftest import shared_data
 from tests.scenes import make_flight
 from workers.image_meta import BlockMeans, inspect_image
-from workers.photo_check import PhotoFacts, hamming, judge, laplacian_variance, preview_jpeg
+from workers.photo_check import HashIndex, PhotoFacts, hamming, judge, laplacian_variance, preview_jpeg
 
 
 def _facts(paths: list[Path], gps: bool = True) -> list[PhotoFacts]:
@@ -127,3 +127,21 @@ def test_previews_fit_the_size_asked(flight, tmp_path: Path) -> None:  # type: i
     Image.fromarray(np.zeros((40, 60, 3), np.uint8)).save(tmp_path / "small.png")
     with Image.open(io.BytesIO(preview_jpeg(tmp_path / "small.png", 256))) as img:
         assert img.size == (60, 40)  # never enlarged
+
+
+def test_the_hash_index_finds_what_comparing_every_pair_finds() -> None:
+    """Near copies (0-8 bits flipped) among random hashes: the banded index names the same first twin as a
+    comparison with every earlier hash."""
+    rng = np.random.default_rng(3)
+    index, seen = HashIndex(), []
+    for k in range(2000):
+        if seen and k % 3 == 0:
+            flipped = sum(1 << int(b) for b in rng.choice(64, size=int(rng.integers(0, 9)), replace=False))
+            value = int(seen[int(rng.integers(len(seen)))][0], 16) ^ flipped
+        else:
+            value = int(rng.integers(0, 2**63)) * 2 + int(rng.integers(0, 2))
+        phash = f"{value:016x}"
+        brute = next((name for other, name in seen if hamming(other, phash) <= 5), None)
+        assert index.near(phash) == brute, k
+        index.add(phash, f"p{k}")
+        seen.append((phash, f"p{k}"))
