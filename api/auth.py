@@ -35,8 +35,10 @@ READ_METHODS = frozenset({"GET", "HEAD"})
 # renew itself past its expiry or its owner's revoked token.
 SIGNED_ROUTES = frozenset(
     {"tile", "load_step_tile", "stage_tile", "stereo_tile", "download_output", "job_events", "tms_tile", "tms_tile_png"}
-    | {"download_all", "wmts_capabilities", "stac_item"}
+    | {"download_all", "wmts_capabilities", "stac_item", "job_photo_preview"}
 )
+# The reads a flight's signature opens (``GET /api/flights/{id}`` answers it): its photos' previews, for <img>.
+SIGNED_FLIGHT_ROUTES = frozenset({"image_preview"})
 # Of those, the answers that carry links (a WMTS layer's tile template, a STAC item's assets): opened by a signed
 # URL they hand on that same signature (``link_signature``), never a fresh one, so a link still cannot renew itself.
 RELINKING_ROUTES = frozenset({"wmts_capabilities", "stac_item"})
@@ -77,6 +79,10 @@ def authorize(
     if principal is None:
         signable = read and job_id is not None and _route_name(request) in SIGNED_ROUTES
         if signable and job_id is not None and _signed_for(request, db, settings, job_id):
+            return
+        flight_id = _path_id(request, "flight_id")
+        flight_signed = read and flight_id is not None and _route_name(request) in SIGNED_FLIGHT_ROUTES
+        if flight_signed and flight_id is not None and _signed_for_flight(request, db, settings, flight_id):
             return
         if read and settings.public_read:
             return
@@ -140,6 +146,19 @@ def _signed_for(request: Request, db: Database, settings: Settings, job_id: int)
         scope = accounts.job_scope(job_id, job.created_at) if job is not None else None
     if scope is None or not accounts.signature_valid(key, scope, exp, sig):
         raise UnauthorizedError("the link has expired or is not valid; open the job again to get a new one")
+    return True
+
+
+def _signed_for_flight(request: Request, db: Database, settings: Settings, flight_id: int) -> bool:
+    exp, sig = request.query_params.get("exp"), request.query_params.get("sig")
+    if exp is None or sig is None:
+        return False
+    key = accounts.signing_key(settings.secret_key, settings.data_dir)
+    with db.session() as s:
+        flight = s.get(Flight, flight_id) if 1 <= flight_id < 2**63 else None
+        scope = accounts.flight_scope(flight_id, flight.created_at) if flight is not None else None
+    if scope is None or not accounts.signature_valid(key, scope, exp, sig):
+        raise UnauthorizedError("the link has expired or is not valid; open the flight again to get a new one")
     return True
 
 

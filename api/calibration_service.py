@@ -106,6 +106,46 @@ def get_calibration(db: Database, settings: Settings, job_id: int, kind: JobKind
     return JobResultOut(job=job, result=ws.load_calibration() if ws.has_calibration() else None)
 
 
+def calibration_photos(db: Database, settings: Settings, job_id: int, kind: JobKind) -> dict[str, Any]:
+    """The job's photos in upload order (``index`` names the preview: ``GET /api/jobs/{id}/photos/{index}/preview``),
+    each with its size, side, the board corners found in it (``detect_corners``; null before, or where none) or
+    why none, and what the user's marks did with it: ``marked`` (its marks replace the corners), ``removed``, or
+    null."""
+    noun = "stereo rig" if kind == JobKind.stereo_calibration else "calibration"
+    job_of_kind(db, job_id, (kind,), noun)
+    ws = job_workspace(settings.data_dir, job_id)
+    try:
+        found: dict[str, Any] = ws.load_corners()
+    except (FileNotFoundError, ValueError):
+        found = {}
+    config = ws.load_config()
+    marks = {m["image"]: m for m in config.get("markers", [])}
+    photos = []
+    for index, frame in enumerate(ws.load_inputs()):
+        corners = (found.get("images") or {}).get(frame["name"]) or {}
+        mark = marks.get(frame["name"])
+        photos.append(
+            {
+                "index": index,
+                "name": frame["name"],
+                "side": frame.get("side", ""),
+                "pair": frame.get("pair", 0),
+                "width": frame["width"],
+                "height": frame["height"],
+                "corners": corners.get("points"),
+                "reason": corners.get("reason", "" if found else "the corners are not found yet"),
+                "marks": None
+                if mark is None
+                else "removed"
+                if mark["remove"]
+                else "marked"
+                if mark["image_points"]
+                else None,
+            }
+        )
+    return {"pattern": found.get("pattern", config.get("pattern")), "photos": photos}
+
+
 def replace_markers(db: Database, settings: Settings, queue: JobQueue, job_id: int, body: MarksUpdate) -> JobOut:
     """Replace (or remove) the marks of some photos and solve again; the corner detection is kept."""
     job = job_of_kind(db, job_id, (JobKind.calibration,), "calibration")

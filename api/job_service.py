@@ -6,8 +6,9 @@ from __future__ import annotations
 import logging
 import shutil
 from datetime import timedelta
-from typing import Any
+from typing import Any, get_args
 
+from annotated_types import Ge, Le
 from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -24,7 +25,7 @@ from core.eta import working_megapixels
 from core.kinds import JobStatus
 from core.settings import Settings
 from workers.algorithms.geometry import Camera
-from workers.config import build_config
+from workers.config import MosaicConfig, build_config
 from workers.gps_file import with_side_file_gps
 from workers.pipeline import pipeline_key, stage_names
 from workers.workspace import flight_folder, job_workspace
@@ -68,6 +69,28 @@ def validated_config(kind: str, options: dict[str, Any]) -> dict[str, Any]:
             except ValueError as exc:
                 raise InvalidInputError(f"options.{name}: {exc}") from None
     return config
+
+
+# The mosaic options the viewer's form offers (the rest keep their defaults; the API takes them all)
+FORM_OPTIONS = ("output_resolution", "working_max_px", "feature_type", "blend")
+FORM_MODES = ("planar", "ortho")
+
+
+def form_options() -> list[dict[str, Any]]:
+    """Each of ``FORM_OPTIONS``: its choices (or its range), and its default in each of ``FORM_MODES`` (some
+    defaults depend on the mode: planar mode registers with ORB, ortho mode with SIFT), from ``MosaicConfig``."""
+    defaults = {mode: MosaicConfig.model_validate({"mode": mode}).model_dump() for mode in FORM_MODES}
+    out = []
+    for name in FORM_OPTIONS:
+        info = MosaicConfig.model_fields[name]
+        entry: dict[str, Any] = {"name": name, "default": {mode: d[name] for mode, d in defaults.items()}}
+        if choices := get_args(info.annotation):
+            entry["choices"] = list(choices)
+        else:
+            entry["minimum"] = next(m.ge for m in info.metadata if isinstance(m, Ge))
+            entry["maximum"] = next(m.le for m in info.metadata if isinstance(m, Le))
+        out.append(entry)
+    return out
 
 
 def _option(loc: tuple[int | str, ...]) -> str:

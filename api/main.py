@@ -78,6 +78,10 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         app.mount("/vendor/leaflet", StaticFiles(directory=vendor / "leaflet" / "dist"), name="leaflet")
     if (vendor / "tus-js-client").is_dir():  # the viewer's resumable uploads
         app.mount("/vendor/tus", StaticFiles(directory=vendor / "tus-js-client" / "dist"), name="tus-js-client")
+    if (vendor / "geographiclib-geodesic").is_dir():  # the map's geodesic distances and areas
+        app.mount("/vendor/geodesic", StaticFiles(directory=vendor / "geographiclib-geodesic"), name="geodesic")
+    if (vendor / "proj4").is_dir():  # the map's coordinates in the mosaic's CRS
+        app.mount("/vendor/proj4", StaticFiles(directory=vendor / "proj4" / "dist"), name="proj4")
     if (vendor / "swagger-ui-dist").is_dir():
         app.mount("/vendor/swagger-ui", StaticFiles(directory=vendor / "swagger-ui-dist"), name="swagger-ui")
     return app

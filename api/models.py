@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -30,6 +30,20 @@ class GpsFix(BaseModel):
     alt: float | None = None
 
 
+class PhotoQuality(BaseModel):
+    analysed_px: list[int]  # width, height of the reduced copy measured
+    sharpness: float  # variance of the Laplacian of that copy (0-255 brightness)
+    mean_brightness: float  # 0-255
+    dark_share: float  # share of nearly black pixels
+    bright_share: float  # share of clipped white pixels
+    phash: str  # 64-bit perceptual hash, hex
+
+
+class PhotoIssue(BaseModel):
+    code: str
+    message: str
+
+
 class ImageOut(BaseModel):
     id: int
     seq: int
@@ -44,6 +58,15 @@ class ImageOut(BaseModel):
     yaw: float | None = None
     pitch: float | None = None
     roll: float | None = None
+    # where a job takes the photo's position from: "side_file" (the flight's GPS file), "exif", or None (none)
+    gps_source: Literal["side_file", "exif"] | None = None
+    position: GpsFix | None = None  # the position a job takes: the GPS file's, else EXIF's
+    # what the upload-time check measured (workers.photo_check.measure); None for photos from before the check
+    quality: PhotoQuality | None = None
+    # what the check finds against the flight's other photos: blurred, under_exposed, over_exposed, no_gps,
+    # duplicate, size_mismatch, not_checked; each with why, in words
+    issues: list[PhotoIssue] = []
+    preview_url: str | None = None  # a reduced JPEG of the photo (?size=32..2048 px, 256 by default), signed
 
 
 class FlightOut(BaseModel):
@@ -56,6 +79,7 @@ class FlightOut(BaseModel):
 
 class FlightDetail(FlightOut):
     images: list[ImageOut]
+    signature: str | None = None  # exp=...&sig=...: opens the photos' previews to an <img>, without the token
 
 
 class UploadResult(BaseModel):
@@ -123,6 +147,19 @@ class MarksUpdate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     markers: list[Marks] = Field(min_length=1, max_length=MAX_PHOTOS)  # per photo: new marks, or remove: true
+
+
+class VolumeRequest(BaseModel):
+    """A polygon on a stereo DEM's DSM and the base its volume is measured from."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    # (lon, lat) vertices, WGS 84 degrees; the ring is closed for you
+    polygon: list[tuple[Annotated[float, Field(ge=-180, le=180)], Annotated[float, Field(ge=-90, le=90)]]] = Field(
+        min_length=3, max_length=1000
+    )
+    # fit: a plane through the surface along the polygon's edge; lowest: the lowest of it; a number: that elevation, m
+    base: Literal["fit", "lowest"] | Annotated[float, Field(ge=-1000.0, le=10000.0)] = "fit"
 
 
 class MeasureRequest(BaseModel):

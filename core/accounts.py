@@ -224,6 +224,11 @@ def job_scope(job_id: int, created_at: datetime) -> str:
     return f"job:{job_id}:{created_at.timestamp():.6f}"
 
 
+def flight_scope(flight_id: int, created_at: datetime) -> str:
+    """What a flight's signed URLs open (its photos' previews), told apart from a later flight with its id."""
+    return f"flight:{flight_id}:{created_at.timestamp():.6f}"
+
+
 def sign(key: bytes, scope: str, valid_seconds: int, now: float | None = None) -> dict[str, str]:
     """Query parameters ``exp`` and ``sig`` that open ``scope`` for at least ``valid_seconds``."""
     now = time.time() if now is None else now

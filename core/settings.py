@@ -8,6 +8,8 @@ from pathlib import Path
 from pydantic import AliasChoices, Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+OSM_TILES = "https://tile.openstreetmap.org/{z}/{x}/{y}.png"  # OpenStreetMap's standard tiles
+
 
 class Settings(BaseSettings):
     """Everything a process needs to know about its surroundings.
@@ -31,7 +33,8 @@ class Settings(BaseSettings):
     max_image_pixels: int = 250_000_000  # width*height; a 135 MP aerial frame fits, a bomb does not
     max_image_side: int = 100_000  # px, either dimension
     min_image_side: int = 16  # px, either dimension
-    basemap_url: str = ""  # optional XYZ template for the viewer's basemap; empty: no basemap
+    # XYZ template of the viewer's basemap, shown when the browser is online; empty or "none": no basemap
+    basemap_url: str = OSM_TILES
     web_dir: Path = Path(__file__).resolve().parent.parent / "web"  # the static viewer
     sse_poll_seconds: float = 0.5  # how often the event stream looks at the job record
     celery_queue: str = "cpu"  # queue the pipeline's tasks are sent to
@@ -74,6 +77,11 @@ class Settings(BaseSettings):
     max_deliveries: int = Field(default=3, ge=1, le=100)  # starts of one stage whose process died, then: failed
     stage_time_limit_seconds: int = Field(default=24 * 3600, ge=60)  # longest one stage may run, s (soft limit)
     worker_beacon_seconds: float = Field(default=10.0, gt=0)  # how often a worker says it is alive, in Redis
+
+    def basemap(self) -> str:
+        """The basemap template the viewer uses: "" when ops turned it off (empty or "none")."""
+        url = self.basemap_url.strip()
+        return "" if url.lower() in ("", "none") else url
 
     def resolved_database_url(self) -> str:
         if self.database_url:

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One-shot set-up on a fresh machine: a real Redis server, the Python environment, the viewer's
-# JavaScript (Leaflet, Swagger UI, tus-js-client) from the npm registry, and (with --test) Chromium for the browser
+# JavaScript (Leaflet, Swagger UI, tus-js-client, GeographicLib's geodesics, proj4js) from the npm registry, and (with --test) Chromium for the browser
 # tests and PostgreSQL's server binaries for running the API tests on PostgreSQL too.
 # Safe to run again: each step is skipped when already done.
 set -euo pipefail
@@ -34,7 +34,9 @@ if [ ! -f "$stamp" ]; then
 fi
 
 if [ ! -f web/node_modules/leaflet/dist/leaflet.js ] || [ ! -f web/node_modules/swagger-ui-dist/swagger-ui-bundle.js ] \
-  || [ ! -f web/node_modules/tus-js-client/dist/tus.min.js ] || [ ! -x web/node_modules/.bin/eslint ]; then
+  || [ ! -f web/node_modules/tus-js-client/dist/tus.min.js ] || [ ! -x web/node_modules/.bin/eslint ] \
+  || [ ! -f web/node_modules/geographiclib-geodesic/geographiclib-geodesic.min.js ] \
+  || [ ! -f web/node_modules/proj4/dist/proj4.js ]; then
   npm install --prefix web --no-audit --no-fund --loglevel=error >/dev/null
 fi
 echo "setup: ready"

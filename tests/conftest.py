@@ -220,6 +220,7 @@ def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServi
         "FOTOSKHEMA_REDIS_URL": redis_url,
         "FOTOSKHEMA_DATABASE_URL": "",
         "FOTOSKHEMA_CELERY_QUEUE": "cpu",
+        "FOTOSKHEMA_BASEMAP_URL": "none",  # the tests run offline: a page that asked OpenStreetMap would fail
         "PYTHONUNBUFFERED": "1",
     }
     env.pop("DATABASE_URL", None)

@@ -74,6 +74,7 @@ def api_process(data_dir: Path, **settings: str) -> ApiProcess:
         "FOTOSKHEMA_DATABASE_URL": "",
         "FOTOSKHEMA_REDIS_URL": "redis://127.0.0.1:1/0",  # nothing is queued here
         "FOTOSKHEMA_REAPER_SECONDS": "0",
+        "FOTOSKHEMA_BASEMAP_URL": "none",  # offline: no page of these tests asks OpenStreetMap
         "PYTHONUNBUFFERED": "1",
         **{f"FOTOSKHEMA_{name.upper()}": value for name, value in settings.items()},
     }

@@ -1,8 +1,8 @@
 /* Fotoskhema viewer: flights, photo uploads, live job progress and the mosaic on a Leaflet map; crack
  * surveys of specimens under load.
  *
- * Vanilla JS with no build step. Routing is by hash (#/, #/flights/3, #/jobs/7, #/crack-surveys/new,
- * #/crack-surveys/9). Every view renders into #app with its own AbortController, whose `view.signal` is
+ * Vanilla JS with no build step. Routing is by hash (#/, #/flights/3, #/jobs/7, #/calibrations,
+ * #/calibrations/new, #/stereo-rigs/new, #/crack-surveys/new, #/crack-surveys/9). Every view renders into #app with its own AbortController, whose `view.signal` is
  * aborted when the route changes: that aborts the view's requests (`api(..., { signal })`) and runs the
  * cleanups registered on it (event stream, map, timers, upload: `onAbort`); after each await a view checks
  * `view.signal.aborted` so a slow answer never draws over the next page. The pages are ES modules
@@ -22,6 +22,7 @@ import { renderFlight } from "./flight.js";
 import { renderJob } from "./job.js";
 import { renderCrackSurvey, renderCrackSurveyList } from "./crack-survey.js";
 import { renderNewCrackSurvey } from "./crack-survey-new.js";
+import { renderCalibrationList, renderNewCalibration } from "./calibration-new.js";
 
 // -- Router --------------------------------------------------------------------------------------
 
@@ -29,6 +30,9 @@ const routes = [
   [/^#?\/?$/, (view, root) => renderFlightList(view, root)],
   [/^#\/flights\/(\d+)$/, (view, root, m) => renderFlight(view, root, Number(m[1]))],
   [/^#\/jobs\/(\d+)$/, (view, root, m) => renderJob(view, root, Number(m[1]))],
+  [/^#\/calibrations\/?$/, (view, root) => renderCalibrationList(view, root)],
+  [/^#\/calibrations\/new$/, (view, root) => renderNewCalibration(view, root, false)],
+  [/^#\/stereo-rigs\/new$/, (view, root) => renderNewCalibration(view, root, true)],
   [/^#\/crack-surveys\/?$/, (view, root) => renderCrackSurveyList(view, root)],
   [/^#\/crack-surveys\/new$/, (view, root) => renderNewCrackSurvey(view, root)],
   [/^#\/crack-surveys\/(\d+)$/, (view, root, m) => renderCrackSurvey(view, root, Number(m[1]))],

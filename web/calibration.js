@@ -17,9 +17,11 @@ import {
   h,
   humanize,
   jobOutputs,
+  jobSignature,
   list,
   messageOf,
 } from "./lib.js";
+import { calibrationPhotos } from "./calibration-marks.js";
 import { JobKind } from "./kinds.js";
 
 export const CALIBRATION_KINDS = new Set([JobKind.CALIBRATION, JobKind.STEREO_CALIBRATION]);
@@ -32,9 +34,10 @@ export async function showCalibration(view, job, card) {
   card.hidden = false;
   card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the calibration…"));
   const { signal } = view;
-  const [data, outputs] = await Promise.all([
+  const [data, outputs, signature] = await Promise.all([
     api("GET", stereo ? `/api/stereo-rigs/${job.id}` : `/api/calibrations/${job.id}`, { signal }),
     jobOutputs(job.id, { signal }),
+    typeof job.signature === "string" ? job.signature : jobSignature(job.id, { signal }).catch(() => ""),
   ]);
   if (signal.aborted) return;
   const result = data && data.result;
@@ -45,8 +48,14 @@ export async function showCalibration(view, job, card) {
   }
   const body = stereo ? stereoBody(job, result) : cameraBody(result);
   const label = (name) => (name === "calibration.json" ? "Calibration (camera JSON)" : name);
+  const photos = await calibrationPhotos(view, job, { stereo, result, signature, editable: !stereo }).catch((err) => ({
+    node: h("p", { class: "muted small", "data-testid": "calibration-photos" }, `The photos could not be listed: ${messageOf(err)}`),
+    start: () => {},
+  }));
+  if (signal.aborted) return;
   // replaceChildren would print a null
-  card.replaceChildren(...body.filter(Boolean), h("div", { class: "quality-block" }, downloadList(outputs, label)));
+  card.replaceChildren(...body.filter(Boolean), photos.node, h("div", { class: "quality-block" }, downloadList(outputs, label)));
+  photos.start(); // once in the page: the map needs its size
 }
 
 // -- One camera ----------------------------------------------------------------------------------

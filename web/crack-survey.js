@@ -125,7 +125,7 @@ async function showSurvey(view, jobId, card, residualCard) {
     tableBox,
     h("div", { class: "quality-block survey-downloads" }, downloadList(outputs, outputLabel(steps))),
   );
-  const { map, mosaic } = createMosaicMap(mapNode, tilejson, "", "Specimen: Fotoskhema");
+  const { map, mosaic } = createMosaicMap(mapNode, tilejson, null, "Specimen: Fotoskhema");
   onAbort(signal, () => map.remove());
   const table = { node: null, select: () => {} }; // the current load step's, replaced by show()
   const cracks = crackLayer(map, report.mm_per_px, (id) => table.select(id, true));

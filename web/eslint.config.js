@@ -1,5 +1,5 @@
 // ESLint flat config of the viewer: browser ES modules (no build step), Leaflet as the global `L`, tus-js-client
-// as the global `tus`.
+// as the global `tus`, GeographicLib's geodesic routines as `geodesic` and proj4js as `proj4`.
 import js from "@eslint/js";
 import globals from "globals";
 
@@ -16,7 +16,7 @@ export default [
     languageOptions: {
       ecmaVersion: "latest",
       sourceType: "module",
-      globals: { ...globals.browser, L: "readonly", tus: "readonly" },
+      globals: { ...globals.browser, L: "readonly", tus: "readonly", geodesic: "readonly", proj4: "readonly" },
     },
     rules: {
       "no-restricted-properties": [

@@ -1,4 +1,6 @@
-/* Flight page (#/flights/<id>): upload photos (drag and drop or file input), their metadata, its jobs. */
+/* Flight page (#/flights/<id>): upload photos (drag and drop or file input); the photos on a map, with previews and
+ * what the upload check found (flight-photos.js), to delete a bad one before starting; the mosaic mode and options
+ * (job-options.js); its jobs. */
 
 import {
   ACTIVE,
@@ -10,6 +12,7 @@ import {
   detailOf,
   formatBytes,
   formatDate,
+  getConfig,
   h,
   humanize,
   messageOf,
@@ -23,6 +26,8 @@ import {
 } from "./lib.js";
 import { JobKind } from "./kinds.js";
 import { deleteControl } from "./delete.js";
+import { photoPanel } from "./flight-photos.js";
+import { optionsForm } from "./job-options.js";
 import { byUploadKind, resumableUpload } from "./resumable-upload.js";
 
 const JOB_POLL_MS = 3000; // how often the job list refreshes while a job is active
@@ -30,22 +35,37 @@ const JOB_POLL_MS = 3000; // how often the job list refreshes while a job is act
 // -- Flight page ---------------------------------------------------------------------------------
 
 export async function renderFlight(view, root, flightId) {
-  const flight = await api("GET", `/api/flights/${flightId}`, { signal: view.signal });
+  const [flight, config] = await Promise.all([api("GET", `/api/flights/${flightId}`, { signal: view.signal }), getConfig()]);
   if (view.signal.aborted) return;
   document.title = `${flight.name} · Fotoskhema`;
   let images = flight.images || [];
 
   const countText = h("span", {});
-  const imagesBody = h("div", { class: "card-body" });
-  const jobs = jobsPanel(view, flightId);
+  const jobs = jobsPanel(view, flightId, config);
+  const photos = photoPanel(view, flightId, { config, onDeleted: () => reload() });
+  const imagesBody = h("div", { class: "card-body" }, photos.node);
   function showImages() {
     countText.textContent = plural(images.length, "photo");
-    imagesBody.replaceChildren(imageTable(images));
+    photos.show(images);
     jobs.setImageCount(images.length);
   }
+  // The check judges each photo against the others: read them all again once some came or went.
+  let reloading = null;
+  function reload() {
+    reloading = reloading || api("GET", `/api/flights/${flightId}`, { signal: view.signal }).then((fresh) => {
+      if (!view.signal.aborted) {
+        images = fresh.images || [];
+        showImages();
+      }
+    }).catch(() => {}).finally(() => {
+      reloading = null;
+    });
+    return reloading;
+  }
   const upload = uploadPanel(view, flightId, (added) => {
-    images = images.concat(added);
+    images = images.concat(added.filter((a) => !images.some((i) => i.id === a.id)));
     showImages();
+    reload();
   });
 
   const deletion = deleteControl({
@@ -244,59 +264,13 @@ function uploadPanel(view, flightId, onUploaded) {
   );
 }
 
-function imageTable(images) {
-  if (!images.length) return h("p", { class: "empty" }, "No photos yet.");
-  const rows = images.map((img, i) => {
-    const gps = img.gps;
-    return h(
-      "tr",
-      { "data-testid": "image-row" },
-      h("td", { class: "num muted" }, String(i + 1)),
-      h("td", { class: "filename", title: img.filename }, img.filename),
-      h("td", { class: "num nowrap" }, formatBytes(img.size_bytes)),
-      h("td", { class: "num nowrap" }, `${img.width} × ${img.height}`),
-      h(
-        "td",
-        { class: "nowrap" },
-        gps ? [h("span", { class: "tag yes" }, "GPS"), " ", h("span", { class: "muted small" }, gpsText(gps))]
-          : h("span", { class: "tag no" }, "no GPS"),
-      ),
-      h("td", { class: "num nowrap" }, img.focal_length_mm != null ? `${img.focal_length_mm.toFixed(1)} mm` : "–"),
-    );
-  });
-  const withGps = images.filter((img) => img.gps).length;
-  return h(
-    "div",
-    { class: "table-scroll" },
-    h(
-      "table",
-      { class: "table compact", "data-testid": "image-list" },
-      h("caption", { class: "visually-hidden" }, "Uploaded photos"),
-      h(
-        "thead",
-        {},
-        h("tr", {}, h("th", { scope: "col", class: "num" }, "#"), h("th", { scope: "col" }, "File"),
-          h("th", { scope: "col", class: "num" }, "Size"), h("th", { scope: "col", class: "num" }, "Pixels"),
-          h("th", { scope: "col" }, "GPS"), h("th", { scope: "col", class: "num" }, "Focal length")),
-      ),
-      h("tbody", {}, rows),
-    ),
-    h("p", { class: "muted small" }, `${withGps} of ${images.length} with GPS.`),
-  );
-}
-
-function gpsText(gps) {
-  const alt = typeof gps.alt === "number" ? ` · ${gps.alt.toFixed(0)} m` : "";
-  return `${gps.lat.toFixed(5)}, ${gps.lon.toFixed(5)}${alt}`;
-}
-
 // The mosaic modes offered before starting a job, and the options each sends.
 const MODES = [
   { value: "planar", label: "Planar", note: "flat ground, fastest", options: {} },
   { value: "ortho", label: "Ortho", note: "photo-triangulation + orthorectification", options: { mode: "ortho" } },
 ];
 
-function modeChoice() {
+function modeChoice(onChange) {
   const radios = MODES.map((mode, i) => h("input", {
     type: "radio", name: "mosaic-mode", id: `mode-${mode.value}`, value: mode.value, checked: i === 0,
     "data-testid": `mode-${mode.value}`,
@@ -308,11 +282,9 @@ function modeChoice() {
     MODES.map((mode, i) => h("label", { class: "check", for: `mode-${mode.value}` }, radios[i], " ",
       h("span", {}, h("strong", {}, mode.label), h("span", { class: "muted" }, ` (${mode.note})`)))),
   );
-  const options = () => {
-    const picked = MODES.find((mode, i) => radios[i].checked) || MODES[0];
-    return { ...picked.options };
-  };
-  return { node, options };
+  const picked = () => MODES.find((mode, i) => radios[i].checked) || MODES[0];
+  for (const radio of radios) radio.addEventListener("change", () => onChange(picked().value));
+  return { node, options: () => ({ ...picked().options }), value: () => picked().value };
 }
 
 /** Upload a ground control point file (ODM gcp_list.txt or OpenSfM JSON); ortho jobs use it. */
@@ -391,13 +363,14 @@ function gpsSummary(s) {
     + `photos with GPS from the file: ${src.side_file ?? "?"}, from EXIF: ${src.exif ?? "?"}, none: ${src.none ?? "?"}.${tail}`;
 }
 
-function jobsPanel(view, flightId) {
+function jobsPanel(view, flightId, config) {
   const hint = h("p", { id: "start-hint", class: "muted small" });
   const error = h("p", { class: "form-error", role: "alert" });
   const list = h("div", { class: "job-list" }, h("p", { class: "muted" }, "Loading jobs…"));
   const start = h("button", { type: "button", class: "btn primary", "data-testid": "start-job", "aria-describedby": "start-hint", disabled: true },
     "Start mosaic");
-  const mode = modeChoice();
+  const form = optionsForm(config.mosaic_options, "planar");
+  const mode = modeChoice((value) => form.setMode(value));
   let timer = null;
   onAbort(view.signal, () => clearTimeout(timer));
 
@@ -405,7 +378,8 @@ function jobsPanel(view, flightId) {
     start.disabled = true;
     error.textContent = "";
     try {
-      const job = await api("POST", "/api/jobs", { body: { flight_id: flightId, kind: JobKind.MOSAIC, options: mode.options() } });
+      const options = { ...mode.options(), ...form.options() };
+      const job = await api("POST", "/api/jobs", { body: { flight_id: flightId, kind: JobKind.MOSAIC, options } });
       window.location.hash = `#/jobs/${job.id}`;
     } catch (err) {
       error.textContent = messageOf(err);
@@ -439,6 +413,7 @@ function jobsPanel(view, flightId) {
     { class: "card", "aria-labelledby": "jobs-heading" },
     h("h2", { id: "jobs-heading" }, "Jobs"),
     mode.node,
+    form.node,
     h("div", { class: "start-row" }, start, hint),
     error,
     gcpUpload(view, flightId),

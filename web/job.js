@@ -5,6 +5,7 @@ import {
   ACTIVE,
   TERMINAL,
   api,
+  apiUrl,
   breadcrumb,
   formatDate,
   formatSeconds,
@@ -46,10 +47,10 @@ export async function renderJob(view, root, jobId) {
   const flightName = flight ? flight.name : `Flight ${job.flight_id}`;
   renderJobPage(view, root, job, {
     crumbs: stereo ? [["Stereo DEMs"], [`Job #${jobId}`]]
-      : calibration ? [["Calibrations"], [`Job #${jobId}`]]
+      : calibration ? [["Calibrations", "#/calibrations"], [`Job #${jobId}`]]
         : [["Flights", "#/"], [flightName, `#/flights/${job.flight_id}`], [`Job #${jobId}`]],
     cards: stereo ? [result] : [result, quality],
-    listHref: calibration || stereo ? "#/" : `#/flights/${job.flight_id}`,
+    listHref: calibration ? "#/calibrations" : stereo ? "#/" : `#/flights/${job.flight_id}`,
     onSucceeded: (done) => (stereo ? showStereoDem(view, done, result).catch(showLoadError(view, result, "result"))
       : showOutcome(view, done, result, quality, calibration)),
   });
@@ -117,10 +118,19 @@ function showOutcome(view, job, result, quality, calibration) {
     showCalibration(view, job, result).catch(failed(result, "result"));
     return;
   }
-  // One outputs request for both cards; the Quality card does not wait for the map's tiles.
+  // One outputs request and one report for both cards; the Quality card does not wait for the map's tiles.
   const outputs = jobOutputs(job.id, { signal: view.signal });
-  showResult(view, job, result, outputs).catch(failed(result, "result"));
-  outputs.then((list) => showQuality(view, list, quality)).catch(failed(quality, "quality report"));
+  const report = outputs.then((list) => readReport(view, list));
+  report.catch(() => {}); // each card says when it cannot read it
+  showResult(view, job, result, outputs, report).catch(failed(result, "result"));
+  outputs.then((list) => showQuality(view, list, quality, report)).catch(failed(quality, "quality report"));
+}
+
+/** The job's report.json from this service (null when it has none). */
+function readReport(view, outputs) {
+  const entry = (outputs || []).find((o) => o.name === "report.json");
+  const url = entry && apiUrl(entry.url);
+  return url ? api("GET", url, { signal: view.signal }) : Promise.resolve(null);
 }
 
 /** A catch handler that shows, in `card`, that `what` (e.g. "result") could not be loaded. */

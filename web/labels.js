@@ -79,7 +79,17 @@ export const LABELS = Object.freeze({
   "gcp_role": {
     "control": "Control point",
     "tie": "Tie point (no known position)",
-    "checkpoint": "Check point (held out)"
+    "checkpoint": "Check point (held out)",
+    "unused": "Not used (no marks on a placed photo)"
+  },
+  "photo_issue": {
+    "blurred": "Blurred",
+    "under_exposed": "Too dark",
+    "over_exposed": "Too bright",
+    "no_gps": "No GPS position",
+    "duplicate": "Same picture as another photo",
+    "size_mismatch": "Other size than the flight's photos",
+    "not_checked": "Not checked"
   },
   "camera_parameter": {
     "focal_px_original": "Focal length (px of the full-size photo)",

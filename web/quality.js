@@ -31,14 +31,15 @@ const FIGURES = [
   ["report-residuals.svg", "Residuals per photo"],
 ];
 
-/** Fill `card` from the job's report.json, if it has one; `outputs` is the job's outputs list. */
-export async function showQuality(view, outputs, card) {
+/** Fill `card` from the job's report.json, if it has one; `outputs` is the job's outputs list, `reportPromise`
+ * (optional) the report already asked for. */
+export async function showQuality(view, outputs, card, reportPromise) {
   const entry = (outputs || []).find((o) => o.name === "report.json");
   const url = entry && apiUrl(entry.url); // read from this service only
   if (!url) return;
   card.hidden = false;
   card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the report…"));
-  const report = await api("GET", url, { signal: view.signal });
+  const report = await (reportPromise || api("GET", url, { signal: view.signal }));
   if (view.signal.aborted) return;
   card.replaceChildren(heading(report && report.mode, outputs), ...qualityBody(report || {}).filter(Boolean),
     pictures(outputs));

@@ -1,39 +1,91 @@
-/* A finished job's mosaic on a Leaflet map (global `L`, loaded before the modules), with its downloads. */
+/* A finished job's mosaic on a Leaflet map (global `L`, loaded before the modules), with its layers and their
+ * switcher (map-layers.js), the measuring tools and cursor coordinates (map-tools.js), a side-by-side comparison
+ * with another job of the flight (swipe.js), and its downloads. */
 
-import { api, apiUrl, downloadList, factList, getConfig, h, jobOutputs, onAbort } from "./lib.js";
+import { api, apiUrl, downloadList, factList, getConfig, h, jobOutputs, jobSignature, onAbort } from "./lib.js";
+import { projectionOf } from "./crs.js";
+import { basemaps, cameraLayer, createPanes, cutlineLayer, footprintLayer, framePreviewUrl, gcpLayer, layerSwitcher } from "./map-layers.js";
+import { coordinatesControl, measureTool } from "./map-tools.js";
+import { swipeControl } from "./swipe.js";
 
 // -- Result: map and downloads ------------------------------------------------------------------
 
-/** Fill `card` with the mosaic map; `outputs` (optional) is a promise of the job's outputs list. */
-export async function showResult(view, job, card, outputs) {
+// The switcher's overlay names (constants: L.control.layers writes them as HTML) and their inputs' test ids
+const LAYER_IDS = {
+  Mosaic: "layer-mosaic",
+  "Frame footprints": "footprints-toggle",
+  "Camera centres": "layer-cameras",
+  "Ground control points": "layer-gcps",
+  "Cut lines (seams)": "cutlines-toggle",
+  OpenStreetMap: "basemap-osm",
+  "Basemap (set by the operator)": "basemap-ops",
+  "No basemap": "basemap-none",
+};
+
+/** Fill `card` with the mosaic map; `outputs` and `report` (optional) are promises of the job's outputs list and
+ * of its report.json (the Quality card reads them too). */
+export async function showResult(view, job, card, outputs, report) {
   card.hidden = false;
   card.replaceChildren(h("h2", { id: "result-heading" }, "Result"), h("p", { class: "muted" }, "Loading the mosaic…"));
   const { signal } = view;
-  const [tilejson, outputList, config] = await Promise.all([
+  const [tilejson, outputList, config, reportData, signature] = await Promise.all([
     api("GET", `/tiles/${job.id}/tilejson.json`, { signal }),
     outputs || jobOutputs(job.id, { signal }),
     getConfig(),
+    Promise.resolve(report).catch(() => null),
+    typeof job.signature === "string" ? job.signature : jobSignature(job.id, { signal }).catch(() => ""),
   ]);
   if (signal.aborted) return;
   const byName = Object.fromEntries(outputList.map((o) => [o.name, o]));
   const georeferenced = tilejson.georeferenced !== false;
+  const projection = georeferenced ? projectionOf(reportData && reportData.crs) : null;
 
   const mapNode = h("div", { class: "map", id: "map", "data-testid": "map", role: "region", "aria-label": "Mosaic map" });
   const controls = h("div", { class: "map-controls" });
   card.replaceChildren(
     h("div", { class: "row spread" }, h("h2", { id: "result-heading" }, "Result"),
-      h("span", { class: "muted small" }, georeferenced ? "Georeferenced (WGS 84 / Web Mercator)" : "Not georeferenced: shown in mosaic pixels")),
+      h("span", { class: "muted small", "data-testid": "map-crs" }, georeferenced
+        ? `Mosaic in ${projection ? `${projection.code} (${projection.name})` : "map coordinates"}, shown on WGS 84 / Web Mercator`
+        : "Not georeferenced: shown in mosaic pixels")),
     h("div", { class: "result-grid" }, mapNode, controls),
   );
-  const { map, mosaic } = createMosaicMap(mapNode, tilejson, georeferenced ? config.basemap_url : "");
+  const { map, mosaic, bases } = createMosaicMap(mapNode, tilejson, georeferenced ? config : null);
   onAbort(view.signal, () => map.remove());
-
   controls.append(opacityControl(mosaic));
-  const footprints = apiUrl((byName["footprints.geojson"] || {}).url); // fetched from this service only
-  controls.append(georeferenced && footprints ? footprintControl(view, map, footprints) : footprintUnavailable(georeferenced));
-  const cutlines = apiUrl((byName["cutlines.geojson"] || {}).url); // a multiband mosaic's seams only
-  if (georeferenced && cutlines) controls.append(cutlineControl(view, map, cutlines));
+  if (georeferenced) {
+    controls.append(...mapLayers(view, map, { job, byName, mosaic, bases, projection, signature, mode: reportData && reportData.mode }));
+  } else {
+    controls.append(footprintUnavailable(false));
+  }
   controls.append(mosaicDownloads(byName), mosaicFacts(tilejson, georeferenced));
+}
+
+/** The layers of a georeferenced mosaic, their switcher, and the side-panel blocks of the tools. */
+function mapLayers(view, map, { job, byName, mosaic, bases, projection, signature, mode }) {
+  const tools = measureTool(view, map, { projection });
+  coordinatesControl(map, projection);
+  const overlays = { Mosaic: mosaic };
+  const blocks = [tools.node];
+  const footprintsUrl = apiUrl((byName["footprints.geojson"] || {}).url); // fetched from this service only
+  if (footprintsUrl) {
+    const footprints = footprintLayer(view, { url: footprintsUrl, mode, photoUrl: framePreviewUrl(job.id, signature), tools });
+    overlays["Frame footprints"] = footprints.layer.addTo(map);
+    const cameras = L.layerGroup();
+    overlays["Camera centres"] = cameras.addTo(map);
+    footprints.loaded.then((features) => {
+      if (!view.signal.aborted) cameraLayer(features, tools, footprints.show).addTo(cameras);
+    });
+    blocks.push(footprints.node);
+  } else {
+    blocks.push(footprintUnavailable(true));
+  }
+  const gcpsUrl = apiUrl((byName["gcps.geojson"] || {}).url);
+  if (gcpsUrl) overlays["Ground control points"] = gcpLayer(view, gcpsUrl, tools).layer.addTo(map);
+  const cutlinesUrl = apiUrl((byName["cutlines.geojson"] || {}).url); // a multiband mosaic's seams only: off at first
+  if (cutlinesUrl) overlays["Cut lines (seams)"] = cutlineLayer(view, cutlinesUrl);
+  layerSwitcher(map, bases, overlays, LAYER_IDS);
+  blocks.push(swipeControl(view, map, job));
+  return blocks;
 }
 
 /** The tile layer's bounds, pulled in by a hair: a tile that only touches the mosaic's edge would
@@ -44,9 +96,10 @@ function insetBounds(west, south, east, north) {
   return L.latLngBounds([south + dy, west + dx], [north - dy, east - dx]);
 }
 
-/** A Leaflet map of a TileJSON's layer: on the Earth (over an optional basemap) when it is georeferenced,
- * in Leaflet's CRS.Simple (one map unit per raster pixel, y negated) otherwise. Answers { map, mosaic }. */
-export function createMosaicMap(node, tilejson, basemapUrl, attribution = "Mosaic: Fotoskhema") {
+/** A Leaflet map of a TileJSON's layer: on the Earth (over the basemap `config` names, from /api/config; none
+ * when `config` is null) when it is georeferenced, in Leaflet's CRS.Simple (one map unit per raster pixel, y
+ * negated) otherwise. Answers { map, mosaic, bases } (bases: the base layers for a layer switcher). */
+export function createMosaicMap(node, tilejson, config, attribution = "Mosaic: Fotoskhema") {
   const [west, south, east, north] = tilejson.bounds;
   const bounds = L.latLngBounds([south, west], [north, east]);
   const minzoom = Number.isFinite(tilejson.minzoom) ? tilejson.minzoom : 0;
@@ -56,10 +109,12 @@ export function createMosaicMap(node, tilejson, basemapUrl, attribution = "Mosai
     noWrap: true,
     tileSize: 256,
     attribution,
+    pane: "mosaic",
   };
   // Whole zoom levels only (Leaflet's default zoomSnap): at a fractional zoom the tiles are scaled and
   // hairline seams show between them; whole levels also show the mosaic's pixels one to one.
   let map;
+  let bases = {};
   if (tilejson.georeferenced === false) {
     // Local pixel grid: Leaflet's CRS.Simple has 1 map unit per screen pixel at zoom 0, and the tile
     // grid has 1 mosaic pixel per tile pixel at maxzoom, so map zoom 0 is tile zoom `maxzoom`.
@@ -68,24 +123,17 @@ export function createMosaicMap(node, tilejson, basemapUrl, attribution = "Mosai
   } else {
     map = L.map(node, { minZoom: Math.max(0, minzoom - 3), maxZoom: maxzoom + 2 });
     Object.assign(layerOptions, { minNativeZoom: minzoom, maxNativeZoom: maxzoom, maxZoom: maxzoom + 2 });
-    if (basemapUrl) {
-      // Leaflet shows an attribution as HTML; a parsed URL's hostname cannot hold a "<" (a forbidden host
-      // code point), so this one cannot open a tag. The basemap URL is the operator's setting, not a user's.
-      L.tileLayer(basemapUrl, { maxZoom: maxzoom + 2, attribution: `Basemap: ${hostOf(basemapUrl)}` }).addTo(map);
+    if (config) {
+      const choice = basemaps(config, maxzoom + 2);
+      bases = choice.layers;
+      bases[choice.initial].addTo(map);
     }
     L.control.scale({ imperial: false }).addTo(map);
   }
+  createPanes(map);
   const mosaic = L.tileLayer(tilejson.tiles[0], layerOptions).addTo(map);
   map.fitBounds(bounds, { padding: [12, 12] });
-  return { map, mosaic };
-}
-
-function hostOf(url) {
-  try {
-    return new URL(url).hostname;
-  } catch {
-    return "external";
-  }
+  return { map, mosaic, bases };
 }
 
 function opacityControl(layer) {
@@ -96,55 +144,6 @@ function opacityControl(layer) {
     output.textContent = `${slider.value} %`;
   });
   return h("div", { class: "control" }, h("label", { for: "opacity" }, "Mosaic opacity ", output), slider);
-}
-
-function footprintControl(view, map, url) {
-  return geojsonControl(view, map, url, {
-    id: "footprints", label: " Frame footprints ", checked: true,
-    style: { color: "#f59e0b", weight: 1.5, opacity: 0.9, fillOpacity: 0.04 },
-  });
-}
-
-/** The regions each frame owns in a multiband mosaic: their borders are the seams. Off at first. */
-function cutlineControl(view, map, url) {
-  return geojsonControl(view, map, url, {
-    id: "cutlines", label: " Cut lines (seams) ", checked: false,
-    style: { color: "#e11d48", weight: 1.2, opacity: 0.95, fill: false, dashArray: "4 3" },
-  });
-}
-
-/** A checkbox and a GeoJSON layer of per-frame polygons (properties index, name) fetched from `url`. */
-function geojsonControl(view, map, url, { id, label, checked, style }) {
-  const box = h("input", { id, type: "checkbox", checked, "data-testid": `${id}-toggle` });
-  const note = h("span", { class: "muted small" });
-  let layer = null;
-  box.addEventListener("change", () => {
-    if (!layer) return;
-    if (box.checked) layer.addTo(map);
-    else layer.remove();
-  });
-  fetch(url, { signal: view.signal })
-    .then((response) => (response.ok ? response.json() : Promise.reject(new Error(`${response.status}`))))
-    .then((geojson) => {
-      if (view.signal.aborted) return;
-      layer = L.geoJSON(geojson, {
-        style,
-        onEachFeature: (feature, featureLayer) => {
-          // A node, not a string: Leaflet sets a string tooltip as HTML, and the name is the photo's file name.
-          const props = feature.properties || {};
-          featureLayer.bindTooltip(h("span", { class: "footprint-tooltip" }, `Frame ${props.index ?? "?"}`,
-            props.name ? `: ${props.name}` : ""), { sticky: true });
-        },
-      });
-      if (box.checked) layer.addTo(map);
-      note.textContent = `${(geojson.features || []).length} frames`;
-    })
-    .catch((err) => {
-      if (view.signal.aborted) return;
-      box.disabled = true;
-      note.textContent = `unavailable (${err.message})`;
-    });
-  return h("div", { class: "control" }, h("label", { class: "check" }, box, label), note);
 }
 
 function footprintUnavailable(georeferenced) {
@@ -158,6 +157,7 @@ const DOWNLOADS = {
   "report.json": { label: "Processing report", testid: "download-report" },
   "footprints.geojson": { label: "Frame footprints", testid: "download-footprints", optional: true },
   "cutlines.geojson": { label: "Cut lines (each frame's region)", testid: "download-cutlines", optional: true },
+  "gcps.geojson": { label: "Ground control points as the map has them", testid: "download-gcps", optional: true },
 };
 
 function mosaicDownloads(byName) {

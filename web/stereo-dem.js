@@ -1,11 +1,15 @@
 /* A finished stereo DEM on its job page: the DSM as hillshaded, colour-ramped tiles over the basemap with
- * its legend and the elevation under the cursor; a pair without RPCs (rectified, a rig, uncalibrated) shows
+ * its legend, the elevation under the cursor, and the map tools (distance, area, the volume above a base,
+ * coordinates in the DSM's UTM zone); a pair without RPCs (rectified, a rig, uncalibrated) shows
  * its disparity map the same way, in the rectified left view's pixels. Read from GET /api/stereo-dems/<id>
  * (the report: figures and legend), /tiles/<id>/{dsm,disparity}/tilejson.json and the point route
  * /tiles/<id>/{dsm,disparity}/point. Every report field may be missing: it then shows "–".
  */
 
 import { api, downloadList, factList, formatCount, formatNumber, getConfig, h, humanize, jobOutputs, onAbort, warningAlerts } from "./lib.js";
+import { projectionOf } from "./crs.js";
+import { layerSwitcher } from "./map-layers.js";
+import { coordinatesControl, measureTool } from "./map-tools.js";
 import { createMosaicMap } from "./result-map.js";
 
 const POINT_DELAY_MS = 120; // ask for the value under the cursor once it has rested this long
@@ -52,21 +56,29 @@ export async function showStereoDem(view, job, card) {
   const readout = h("p", { class: "readout", "data-testid": "point-readout", role: "status", "aria-live": "polite" },
     dsm ? "Move over the map to read the elevation." : "Move over the map to read the disparity.");
   const legend = dsm ? surface.legend : (report.disparity || {}).legend;
+  const controls = h("div", { class: "map-controls" },
+    h("div", { class: "control" }, h("h3", {}, dsm ? "Elevation" : "Disparity"), legendNode(legend), readout),
+    h("div", { class: "control" }, h("h3", {}, "Figures"), factList(facts(report, dsm))),
+    h("div", { class: "control" }, downloadList(outputs.filter((o) => DOWNLOADS[o.name]), (name) => DOWNLOADS[name] || name)));
   card.replaceChildren(
     h("div", { class: "row spread" }, h("h2", { id: "result-heading" }, dsm ? "Surface model" : "Disparity"),
       h("span", { class: "muted small" }, dsm ? `DSM in EPSG:${surface.epsg ?? "–"}, shown on WGS 84 / Web Mercator`
         : "No camera model on the ground: shown in the rectified left view's pixels")),
     ...warningAlerts(report.warnings, "stereo-warning"),
-    h("div", { class: "result-grid" }, mapNode,
-      h("div", { class: "map-controls" },
-        h("div", { class: "control" }, h("h3", {}, dsm ? "Elevation" : "Disparity"), legendNode(legend), readout),
-        h("div", { class: "control" }, h("h3", {}, "Figures"), factList(facts(report, dsm))),
-        h("div", { class: "control" }, downloadList(outputs.filter((o) => DOWNLOADS[o.name]), (name) => DOWNLOADS[name] || name)))),
+    h("div", { class: "result-grid" }, mapNode, controls),
   );
   const attribution = dsm ? "DSM: Fotoskhema" : "Disparity: Fotoskhema";
-  const { map } = createMosaicMap(mapNode, tilejson, dsm ? config.basemap_url : "", attribution);
+  const { map, mosaic, bases } = createMosaicMap(mapNode, tilejson, dsm ? config : null, attribution);
   onAbort(signal, () => map.remove());
   followPointer(view, map, job.id, dsm, readout);
+  if (dsm) { // on the ground: measure (and a volume over the DSM), coordinates, the basemap and the DSM's switcher
+    const projection = projectionOf(Number.isInteger(surface.epsg) ? `EPSG:${surface.epsg}` : "");
+    const tools = measureTool(view, map, { projection, dsm: { jobId: job.id } });
+    coordinatesControl(map, projection);
+    layerSwitcher(map, bases, { "DSM (shaded relief)": mosaic }, { "DSM (shaded relief)": "layer-dsm", OpenStreetMap: "basemap-osm",
+      "Basemap (set by the operator)": "basemap-ops", "No basemap": "basemap-none" });
+    controls.prepend(tools.node);
+  }
 }
 
 /** The value under the cursor, asked for once the cursor rests; one request at a time, the older aborted. */

@@ -8,6 +8,12 @@ in bounded pieces and checked (chunk CRCs, filter bytes, exactly the data its he
 (striped or tiled, JPEG or otherwise compressed, BigTIFF) is decoded one tile or strip at a time by GDAL
 (rasterio, imported only then); other formats in full, within a process-wide memory budget shared by
 concurrent validations.
+
+That decode also gives the reduced copy the photo's quality figures are measured on (``workers.photo_check``:
+sharpness, exposure, a perceptual hash), stored as ``quality``: a JPEG is decoded at 1/8 of its size or at the
+scale that keeps ``ANALYSIS_PX`` on its longer side, whichever is larger; a TIFF's blocks are averaged into it as
+they are checked; a PNG is decoded a second time, whole, up to ``FULL_DECODE_PIXELS`` (a larger one is not
+measured).
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 from PIL import Image, PngImagePlugin, UnidentifiedImageError
+
+from workers.photo_check import ANALYSIS_PX, FULL_DECODE_PIXELS, analysis_gray, full_scale, measure
 
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
@@ -77,7 +85,8 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
                 _check_dimensions(width, height, limits)
                 xmp = img.info.get("xmp", b"")
                 fmt = img.format or ""
-                _decode(img, path, decode_budget(limits.decode_budget_bytes))  # a truncated or corrupt file fails here
+                # a truncated or corrupt file fails here; the reduced copy is measured below
+                gray = _decode(img, path, decode_budget(limits.decode_budget_bytes))
                 exif = Image.Image.getexif(img)  # not PngImageFile's, which decodes the image to look for EXIF
         except InvalidImageError:
             raise
@@ -97,6 +106,7 @@ def inspect_image(path: Path, limits: ImageLimits = ImageLimits()) -> dict[str, 
         meta["rpc"] = True
     meta.update(_exif_fields(exif))
     meta.update(_xmp_fields(xmp if isinstance(xmp, bytes) else str(xmp).encode()))
+    meta["quality"] = measure(gray) if gray is not None else None
     return meta
 
 
@@ -128,22 +138,42 @@ def decode_budget(total: int) -> DecodeBudget:
     return DecodeBudget(total)
 
 
-def _decode(img: Image.Image, path: Path, budget: DecodeBudget) -> None:
-    """Decode all of ``img``'s data without holding its full-size raster (a PNG, a JPEG) or within ``budget``."""
+def _decode(img: Image.Image, path: Path, budget: DecodeBudget) -> np.ndarray | None:
+    """Decode all of ``img``'s data without holding its full-size raster (a PNG, a JPEG) or within ``budget``;
+    answer the photo's reduced brightness (``analysis_gray``), or None for a PNG too large to decode whole."""
     width, height = img.size
     if img.format in ("JPEG", "MPO"):
-        img.draft(img.mode, ((width + 7) // 8, (height + 7) // 8))  # DCT scaling to 1/8: 1/64 of the pixels
+        img.draft(img.mode, _draft_size(width, height))  # DCT scaling to 1/8 (1/64 of the pixels), or less
         img.load()
-    elif img.format == "PNG":
+        return analysis_gray(img)
+    if img.format == "PNG":
         with path.open("rb") as f:
             check_png_data(f, width, height)
             _read_png_trailer(f, img.info)
-    elif img.format == "TIFF":
-        _decode_tiff_blocks(path)
-    else:
-        bands = len(img.getbands())
-        with budget.hold(width * height * bands * _BYTES_PER_BAND.get(img.mode, 4)):
-            img.load()
+        return _whole_png_gray(path, width * height * len(img.getbands()) * 2, budget)
+    if img.format == "TIFF":
+        return _decode_tiff_blocks(path)
+    bands = len(img.getbands())
+    with budget.hold(width * height * bands * _BYTES_PER_BAND.get(img.mode, 4)):
+        img.load()
+        return analysis_gray(img)
+
+
+def _draft_size(width: int, height: int) -> tuple[int, int]:
+    """The size to ask libjpeg's DCT scaling for: 1/8, or the largest of 1/4, 1/2, 1/1 that keeps ``ANALYSIS_PX``
+    on the longer side (a 4000 px photo is decoded at 500 px, a 1600 px one at 800 px)."""
+    factor = min(8.0, max(1.0, max(width, height) / ANALYSIS_PX))
+    return math.ceil(width / factor), math.ceil(height / factor)
+
+
+def _whole_png_gray(path: Path, nbytes: int, budget: DecodeBudget) -> np.ndarray | None:
+    """A PNG's reduced brightness from a second, whole decode within ``budget``; None above ``FULL_DECODE_PIXELS``."""
+    with Image.open(path) as png:
+        if png.width * png.height > FULL_DECODE_PIXELS:
+            return None
+        with budget.hold(nbytes):
+            png.load()
+            return analysis_gray(png)
 
 
 TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
@@ -165,8 +195,9 @@ def _inspect_tiff(path: Path, limits: ImageLimits) -> dict[str, Any]:
     except RasterioError as exc:
         raise InvalidImageError(f"not a readable TIFF ({exc})") from None
     _check_dimensions(width, height, limits)
-    _decode_tiff_blocks(path)
-    return {"width": width, "height": height, "format": "TIFF", **({"rpc": True} if _has_rpcs(path) else {})}
+    gray = _decode_tiff_blocks(path)
+    meta = {"width": width, "height": height, "format": "TIFF", **({"rpc": True} if _has_rpcs(path) else {})}
+    return {**meta, "quality": measure(gray)}
 
 
 def _has_rpcs(path: Path) -> bool:
@@ -187,9 +218,10 @@ def _has_rpcs(path: Path) -> bool:
         return False
 
 
-def _decode_tiff_blocks(path: Path) -> None:
+def _decode_tiff_blocks(path: Path) -> np.ndarray:
     """Decode every tile or strip of a TIFF once, one block at a time (GDAL): a 135 MP JPEG-in-TIFF aerial
-    frame is checked in a few MiB instead of its 405 MB raster."""
+    frame is checked in a few MiB instead of its 405 MB raster. Each block's brightness is averaged, as it goes,
+    into cells of ``f`` x ``f`` pixels (``f`` keeps ``ANALYSIS_PX`` on the longer side): the reduced copy."""
     import rasterio  # GDAL: only for TIFF uploads
     from rasterio.errors import RasterioError
 
@@ -197,10 +229,41 @@ def _decode_tiff_blocks(path: Path) -> None:
         with rasterio.open(path) as src:
             if src.dtypes[0] not in ("uint8", "uint16"):
                 raise InvalidImageError(f"{src.dtypes[0]} samples: 8- or 16-bit unsigned integers expected")
+            f = max(1, math.ceil(max(src.width, src.height) / ANALYSIS_PX))
+            cells = BlockMeans((math.ceil(src.height / f), math.ceil(src.width / f)), f)
             for _, window in src.block_windows(1):
-                src.read(window=window)
+                cells.add(src.read(window=window), int(window.row_off), int(window.col_off))
     except RasterioError as exc:
         raise InvalidImageError(f"image data is corrupt or truncated ({exc})") from None
+    return cells.gray()
+
+
+class BlockMeans:
+    """The mean brightness of ``f`` x ``f`` cells of an image read block by block (a block's rows and columns
+    summed per cell with ``np.add.reduceat``, whatever the blocks' sizes and offsets)."""
+
+    def __init__(self, shape: tuple[int, int], f: int) -> None:
+        self.f, self.total, self.count, self.peak = f, np.zeros(shape), np.zeros(shape), 0.0
+
+    def add(self, block: np.ndarray, row: int, col: int) -> None:
+        """``block``: ``(bands, h, w)`` samples whose first pixel is at (``row``, ``col``) of the image."""
+        if block.size == 0:
+            return
+        self.peak = max(self.peak, float(block.max()))
+        luma = block[0] if len(block) < 3 else 0.299 * block[0] + 0.587 * block[1] + 0.114 * block[2]
+        rows = (row + np.arange(block.shape[1])) // self.f
+        cols = (col + np.arange(block.shape[2])) // self.f
+        r0 = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+        c0 = np.flatnonzero(np.r_[True, cols[1:] != cols[:-1]])
+        sums = np.add.reduceat(np.add.reduceat(luma.astype(np.float64), r0, axis=0), c0, axis=1)
+        counts = np.outer(np.diff(np.r_[r0, len(rows)]), np.diff(np.r_[c0, len(cols)]))
+        self.total[np.ix_(rows[r0], cols[c0])] += sums
+        self.count[np.ix_(rows[r0], cols[c0])] += counts
+
+    def gray(self) -> np.ndarray:
+        """``(h, w) uint8`` mean brightness per cell, scaled by the samples' ``full_scale``."""
+        mean = self.total / np.maximum(self.count, 1)
+        return np.clip(mean * 255.0 / full_scale(self.peak), 0, 255).astype(np.uint8)
 
 
 _BYTES_PER_BAND = {"1": 1, "L": 1, "P": 1, "RGB": 1, "RGBA": 1, "CMYK": 1, "YCbCr": 1, "LA": 1, "PA": 1}

@@ -90,6 +90,7 @@ _CRACKS_CSV = "cracks.csv"
 _MOSAIC = "mosaic.tif"
 _FRAME_INDEX = "frame_index.tif"  # which frame each mosaic pixel was taken from: index + 1, 0 = none
 _FOOTPRINTS = "footprints.geojson"
+_GCP_POINTS = "gcps.geojson"  # the ground control points as the map has them (write_report)
 _CRACKS_GEOJSON = "cracks.geojson"
 # stereo DEM jobs
 _RECTIFICATION = "rectification.json"
@@ -544,6 +545,12 @@ class JobWorkspace:
     def save_footprints(self, collection: dict[str, Any]) -> None:
         self._save_json(_FOOTPRINTS, collection)
 
+    def load_gcp_points(self) -> dict[str, Any]:
+        return dict(self._json(_GCP_POINTS))
+
+    def save_gcp_points(self, collection: dict[str, Any]) -> None:
+        self._save_json(_GCP_POINTS, collection)
+
     def _stage_report_file(self, stage: str) -> Path:
         return self.root / "reports" / f"{stage}.json"
 
@@ -702,6 +709,7 @@ class JobWorkspace:
             *REPORT_FIGURES,
             _FOOTPRINTS,
             _CUTLINES,
+            _GCP_POINTS,
             _CALIBRATION,
             _CAMERAS,
             _CRACKS_GEOJSON,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, File, Form, UploadFile
 
 from api import calibration_service as service
@@ -38,6 +40,13 @@ def get_calibration(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobResul
     return service.get_calibration(db, settings, job_id, JobKind.calibration)
 
 
+@router.get("/calibrations/{job_id}/photos")
+def calibration_photos(job_id: JobId, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    """The photos of a calibration in upload order, each with its size, the board corners found in it (or why
+    none) and what the marks did with it; ``index`` names its preview (``/api/jobs/{id}/photos/{index}/preview``)."""
+    return service.calibration_photos(db, settings, job_id, JobKind.calibration)
+
+
 @router.put("/calibrations/{job_id}/markers", status_code=202, response_model=JobOut)
 def replace_markers(job_id: JobId, body: MarksUpdate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
     """Replace or remove the marks of some photos, then solve again."""
@@ -69,6 +78,12 @@ async def create_stereo_rig(
 @router.get("/stereo-rigs/{job_id}", response_model=JobResultOut)
 def get_stereo_rig(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobResultOut:
     return service.get_calibration(db, settings, job_id, JobKind.stereo_calibration)
+
+
+@router.get("/stereo-rigs/{job_id}/photos")
+def stereo_rig_photos(job_id: JobId, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    """The photos of a stereo rig (left ones, then right ones, ``pair`` their order), as for a calibration."""
+    return service.calibration_photos(db, settings, job_id, JobKind.stereo_calibration)
 
 
 @router.post("/stereo-rigs/{job_id}/measure")

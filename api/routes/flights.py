@@ -2,37 +2,25 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, File, Response, UploadFile
 from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool
 
-from api import job_service
+from api import job_service, photo_service
 from api.auth import UserDep, Viewer, owner_filter
-from api.deps import DbDep, FlightId, SettingsDep
-from api.errors import NotFoundError
+from api.deps import DbDep, FlightId, ImageId, PreviewSize, SettingsDep
 from api.gcp_service import MAX_GCP_BYTES, store_gcps
 from api.gps_service import store_gps
 from api.limits import MAX_GPS_BYTES
-from api.models import FlightCreate, FlightDetail, FlightOut, ImageOut, UploadResult
+from api.models import FlightCreate, FlightDetail, FlightOut, UploadResult
 from api.uploads import display_name, store_uploads
 from core.db import Flight, Image
 
+JPEG: dict[int | str, dict[str, Any]] = {200: {"content": {"image/jpeg": {}}}}  # OpenAPI: previews are JPEG
+
 router = APIRouter(prefix="/api/flights", tags=["flights"])
-
-
-def image_out(image: Image) -> ImageOut:
-    meta = image.meta or {}
-    return ImageOut(
-        id=image.id,
-        seq=image.seq,
-        filename=image.filename,
-        stored_name=image.stored_name,
-        size_bytes=image.size_bytes,
-        width=image.width,
-        height=image.height,
-        gps=meta.get("gps"),
-        **{k: meta.get(k) for k in ("focal_length_mm", "focal_length_35mm", "yaw", "pitch", "roll")},
-    )
 
 
 def flight_out(flight: Flight, image_count: int) -> FlightOut:
@@ -71,13 +59,10 @@ def list_flights(viewer: Viewer, db: DbDep) -> list[FlightOut]:
 
 
 @router.get("/{flight_id}", response_model=FlightDetail)
-def get_flight(flight_id: FlightId, db: DbDep) -> FlightDetail:
-    with db.session() as s:
-        flight = s.get(Flight, flight_id)
-        if flight is None:
-            raise NotFoundError(f"flight {flight_id} not found")
-        images = [image_out(i) for i in flight.images]
-        return FlightDetail(**flight_out(flight, len(images)).model_dump(), images=images)
+def get_flight(flight_id: FlightId, db: DbDep, settings: SettingsDep) -> FlightDetail:
+    """The flight and its photos: each with its position's source, what the upload-time check measured and
+    finds against the flight's other photos (``issues``), and a signed ``preview_url``."""
+    return photo_service.flight_detail(db, settings, flight_id)
 
 
 @router.delete("/{flight_id}", status_code=204)
@@ -94,9 +79,29 @@ async def upload_images(
     settings: SettingsDep,
     files: list[UploadFile] = File(..., description="one or more photos"),
 ) -> UploadResult:
-    """Validate and store photos; answers every file's metadata, or a 4xx naming the bad file."""
-    images = await store_uploads(db, settings, flight_id, files)
-    return UploadResult(images=[image_out(i) for i in images])
+    """Validate and store photos; answers every file's metadata and what the photo check finds (against the
+    flight's other photos too), or a 4xx naming the bad file."""
+    stored = {i.id for i in await store_uploads(db, settings, flight_id, files)}
+    detail = await run_in_threadpool(photo_service.flight_detail, db, settings, flight_id)
+    return UploadResult(images=[i for i in detail.images if i.id in stored])
+
+
+@router.delete("/{flight_id}/images/{image_id}", status_code=204)
+def delete_image(flight_id: FlightId, image_id: ImageId, db: DbDep, settings: SettingsDep) -> Response:
+    """Delete one photo of the flight (a blurred or dark one, say) before processing; 409 while a job of the
+    flight is waiting or running."""
+    photo_service.delete_image(db, settings, flight_id, image_id)
+    return Response(status_code=204)
+
+
+@router.get("/{flight_id}/images/{image_id}/preview", name="image_preview", responses=JPEG)
+def image_preview(
+    flight_id: FlightId, image_id: ImageId, db: DbDep, settings: SettingsDep, size: PreviewSize = 256
+) -> Response:
+    """A reduced JPEG of the photo, at most ``size`` px on its longer side; opened by the token or by the
+    flight's ``signature`` (``GET /api/flights/{id}``), as an ``<img>`` must."""
+    jpeg = photo_service.image_preview(db, settings, flight_id, image_id, size)
+    return Response(jpeg, media_type="image/jpeg", headers={"Cache-Control": photo_service.PREVIEW_CACHE})
 
 
 @router.put("/{flight_id}/gcps")

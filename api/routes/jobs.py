@@ -9,9 +9,9 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
-from api import job_service
+from api import job_service, photo_service
 from api.auth import UserDep, Viewer, job_signature, link_signature, owner_filter
-from api.deps import DbDep, FlightFilter, JobId, QueueDep, SettingsDep
+from api.deps import DbDep, FlightFilter, JobId, PhotoIndex, PreviewSize, QueueDep, SettingsDep
 from api.errors import ConflictError, NotFoundError
 from api.models import JobCreate, JobOut, OutputOut, OutputsOut
 from api.stac import stac_item
@@ -33,6 +33,7 @@ MEDIA_TYPES = {
 # The report and its pictures open in the browser, as documents with no script, no request to anywhere and an
 # origin of their own (sandbox): whatever a photo's name held, it cannot reach the viewer's token.
 INLINE_SUFFIXES = frozenset({".html", ".svg"})
+JPEG: dict[int | str, dict[str, Any]] = {200: {"content": {"image/jpeg": {}}}}
 DOCUMENT_POLICY = "default-src 'none'; style-src 'unsafe-inline'; img-src data:; sandbox"
 
 
@@ -144,6 +145,14 @@ def download_output(job_id: JobId, name: str, db: DbDep, settings: SettingsDep) 
         content_disposition_type="inline" if inline else "attachment",
         headers={"Content-Security-Policy": DOCUMENT_POLICY, "X-Content-Type-Options": "nosniff"} if inline else None,
     )
+
+
+@router.get("/{job_id}/photos/{index}/preview", name="job_photo_preview", responses=JPEG)
+def job_photo_preview(job_id: JobId, index: PhotoIndex, settings: SettingsDep, size: PreviewSize = 1024) -> Response:
+    """A reduced JPEG of the job's photo ``index`` (its input order, 0-based: a mosaic footprint's ``index``, a
+    calibration's photos as uploaded), at most ``size`` px on its longer side; opened by the job's signature."""
+    jpeg = photo_service.job_photo_preview(settings, job_id, index, size)
+    return Response(jpeg, media_type="image/jpeg", headers={"Cache-Control": photo_service.PREVIEW_CACHE})
 
 
 @router.get("/{job_id}/stac.json", name="stac_item", responses={200: {"content": {"application/geo+json": {}}}})

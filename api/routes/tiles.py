@@ -30,7 +30,9 @@ from sqlalchemy import select
 from api import job_service
 from api.auth import Viewer, job_signature, link_signature
 from api.deps import DbDep, JobId, SettingsDep, TileIndex
+from api.dsm_volume import dsm_volume as volume_inside
 from api.errors import ConflictError, NotFoundError
+from api.models import VolumeRequest
 from api.tiler import TILE_SIZE, CogIdentity, TileNotFoundError, Tiler
 from api.wmts import SUPPORTED_TMS, WmtsLayer, capabilities
 from core.db import Database, Job
@@ -228,6 +230,16 @@ def dsm_point(
         mask = _stereo_file(db, settings, job_id, ws.dsm_mask_path(), "DSM")
         state = STATES.get(int(tiler.sample(mask.identity, lon, lat, True) or 0))
     return {"lon": lon, "lat": lat, "elevation_m": elevation, "state": state}
+
+
+@router.post("/{job_id}/dsm/volume")
+def dsm_volume(job_id: JobId, body: VolumeRequest, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
+    """The volume of the DSM above and below a base inside a polygon (lon/lat), m³ on the DSM's grid: a plane
+    through the surface along the polygon's edge (``fit``, the default), its lowest point there, or an elevation;
+    with the polygon's area, the share of its cells that have a value and were measured (not filled)."""
+    ws = job_workspace(settings.data_dir, job_id)
+    _stereo_file(db, settings, job_id, ws.dsm_path(), "DSM")  # 404 / 409 as the other DSM routes
+    return volume_inside(ws.dsm_path(), ws.dsm_mask_path(), list(body.polygon), body.base)
 
 
 @router.get("/{job_id}/disparity/point")

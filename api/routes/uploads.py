@@ -11,12 +11,12 @@ from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from api import resumable
+from api import photo_service, resumable
 from api.auth import UserDep
 from api.deps import DbDep, FlightId, SettingsDep
 from api.errors import ApiError, NotFoundError, PreconditionFailedError
-from api.models import UploadOut
-from api.routes.flights import image_out
+from api.models import ImageOut, UploadOut
+from api.photo_service import image_out
 from core.db import Database, Flight
 from core.settings import Settings
 
@@ -63,8 +63,17 @@ TusResumable = Annotated[str | None, Header(description="the protocol version: 1
 UploadId = Annotated[str, Path(pattern="^[0-9a-f]{32}$", description="the upload's id, from its URL")]
 
 
-def upload_out(db: Database, state: resumable.UploadState) -> UploadOut:
+def upload_out(db: Database, state: resumable.UploadState, settings: Settings | None = None) -> UploadOut:
+    """The upload as JSON; once complete, with its photo as the flight answers it (judged by the photo check,
+    its preview signed) when ``settings`` are given, else as stored."""
     image = resumable.image_of(db, state)
+    if image is not None and settings is not None:
+        judged = photo_service.judged_image(db, settings, image.flight_id, image.id)
+        return _upload_out(state, judged)
+    return _upload_out(state, image_out(image) if image is not None else None)
+
+
+def _upload_out(state: resumable.UploadState, image: ImageOut | None) -> UploadOut:
     return UploadOut(
         id=state.id,
         url=state.location,
@@ -73,7 +82,7 @@ def upload_out(db: Database, state: resumable.UploadState) -> UploadOut:
         offset=state.offset,
         complete=state.complete,
         expires_at=None if state.complete else state.expires_at,
-        image=image_out(image) if image is not None else None,
+        image=image,
     )
 
 
@@ -150,7 +159,7 @@ def get_upload(
     flight_id: FlightId, upload_id: UploadId, principal: UserDep, db: DbDep, settings: SettingsDep
 ) -> UploadOut:
     """The upload as JSON: how far it is and, once complete, the photo it became."""
-    return upload_out(db, resumable.upload_state(db, settings, flight_id, upload_id))
+    return upload_out(db, resumable.upload_state(db, settings, flight_id, upload_id), settings)
 
 
 @router.patch("/{upload_id}", status_code=204)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from typing import Any
+from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Request
 from fastapi.openapi.docs import get_swagger_ui_html
@@ -11,8 +12,10 @@ from sqlalchemy import text
 from sqlalchemy.exc import SQLAlchemyError
 
 from api.deps import DbDep, QueueDep, SettingsDep
+from api.job_service import form_options
 from api.queue import MonitoredQueue
 from core.db import Database
+from core.settings import OSM_TILES
 
 router = APIRouter()
 
@@ -61,11 +64,18 @@ def _database_state(db: Database) -> str:
 
 @router.get("/api/config", tags=["service"])
 def viewer_config(settings: SettingsDep) -> dict[str, Any]:
-    """What the viewer needs to know: an optional basemap URL template (empty: no basemap), whether reads need
-    no token, the upload limits it splits a big selection of photos by, from what size it sends a photo by
-    resumable upload, and how many import directories there are."""
+    """What the viewer needs to know: the basemap URL template (OpenStreetMap unless ops set another, empty when
+    they turned it off) and its name, whether reads need no token, the upload limits it splits a big selection of
+    photos by, from what size it sends a photo by resumable upload, how many import directories there are, and
+    the mosaic options its form offers with their defaults per mode."""
+    basemap = settings.basemap()
     return {
-        "basemap_url": settings.basemap_url,
+        "basemap_url": basemap,
+        "basemap_name": "OpenStreetMap"
+        if basemap == OSM_TILES
+        else (urlsplit(basemap).hostname or "")
+        if basemap
+        else "",
         "public_read": settings.public_read,
         "max_upload_bytes": settings.max_upload_bytes,
         "max_request_bytes": settings.max_request_bytes,
@@ -74,4 +84,5 @@ def viewer_config(settings: SettingsDep) -> dict[str, Any]:
         "resumable_upload_bytes": settings.resumable_upload_bytes,
         "resumable_chunk_bytes": settings.resumable_chunk_bytes,
         "import_dirs": len(settings.import_dirs),  # how many; server-side import is off when 0
+        "mosaic_options": form_options(),
     }

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from core.db import Database
-from tests.conftest import RecordingQueue, shared_data
+from tests.conftest import RecordingQueue, shared_data, user_headers
 from workers.algorithms.geometry import Camera
 from workers.tasks import execute_stage
 
@@ -57,6 +57,9 @@ def test_chessboard_calibration_then_corrected_marks(client: TestClient, api_set
     assert result["rms_px"] < 0.5 and abs(camera.fx - 536) < 0.02 * 536  # MANIFEST: fx ~ 536
     assert len(result["views"]) == 13 and all(len(v["points"]) == 54 for v in result["views"])
     assert result["worst_points"][0]["error_px"] == max(p["error_px"] for v in result["views"] for p in v["points"])
+    photos = client.get(f"/api/calibrations/{job['id']}/photos").json()["photos"]
+    assert len(photos) == 13 and all(len(p["corners"]) == 54 and p["marks"] is None for p in photos)
+    assert photos[3]["corners"] == [q["image_xy"] for q in result["views"][3]["points"]]  # what the solve used
 
     # a user moves one mark 6 px off and removes a photo: the solve reruns and points at the bad mark
     view = result["views"][3]
@@ -78,6 +81,8 @@ def test_chessboard_calibration_then_corrected_marks(client: TestClient, api_set
     assert (worst["image"], worst["index"]) == (view["image"], 20) and worst["error_px"] > 3.0
     marked = next(v for v in resolved["views"] if v["image"] == view["image"])
     assert marked["source"] == "markers"
+    marks_now = {p["name"]: p["marks"] for p in client.get(f"/api/calibrations/{job['id']}/photos").json()["photos"]}
+    assert marks_now[view["image"]] == "marked" and marks_now[result["views"][0]["image"]] == "removed"
     assert (api_settings.data_dir / "jobs" / str(job["id"]) / "corners.json").stat().st_mtime_ns == corners_written
 
 
@@ -151,6 +156,26 @@ def test_photos_without_a_board_fail_the_job_saying_which(client: TestClient, ap
     assert record["status"] == "failed"
     assert "only 0 photo(s) have a usable board" in record["error"]
     assert "wall1.png: no 9x6 chessboard" in record["error"]
+
+
+def test_a_calibrations_photos_say_what_was_found_in_each(client: TestClient, api_settings, tmp_path: Path) -> None:
+    job = client.post("/api/calibrations", files=upload(blank_photos(tmp_path, 3))).json()
+    before = client.get(f"/api/calibrations/{job['id']}/photos").json()
+    assert [p["name"] for p in before["photos"]] == ["wall0.png", "wall1.png", "wall2.png"]
+    assert before["photos"][0]["reason"] == "the corners are not found yet" and before["photos"][0]["corners"] is None
+    run_job(client, api_settings, job)
+    photos = client.get(f"/api/calibrations/{job['id']}/photos").json()
+    assert photos["pattern"] == [9, 6]
+    assert [(p["index"], p["width"], p["height"], p["side"]) for p in photos["photos"]] == [
+        (k, 320, 240, "") for k in range(3)
+    ]
+    assert all(p["corners"] is None and p["reason"] == "no 9x6 chessboard found" for p in photos["photos"])
+    preview = client.get(f"/api/jobs/{job['id']}/photos/1/preview?size=160")
+    assert preview.status_code == 200 and preview.headers["content-type"] == "image/jpeg"
+    assert client.get(f"/api/stereo-rigs/{job['id']}/photos").status_code == 404  # not a rig
+    assert client.get(f"/api/calibrations/{job['id'] + 100}/photos").status_code == 404
+    eve = user_headers(client, "eve")
+    assert client.get(f"/api/calibrations/{job['id']}/photos", headers=eve).status_code == 404
 
 
 @pytest.mark.parametrize(

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
+from api.job_service import form_options
 from core.db import Database, Job
 from core.kinds import JobStatus
 from tests.conftest import RecordingQueue
@@ -140,7 +141,14 @@ def test_worker_runs_every_stage_and_keeps_the_record(client: TestClient, api_se
         assert record["stage"] == stage and stage in record["timings"]
     assert status == "succeeded" and progress == sorted(progress) and progress[-1] == 100
     names = {o["name"] for o in client.get(f"/api/jobs/{job['id']}/outputs").json()["outputs"]}
-    assert names == {"mosaic.tif", "report.json", "footprints.geojson", "report.html", *REPORT_FIGURES}
+    assert names == {
+        "mosaic.tif",
+        "frame_index.tif",
+        "report.json",
+        "footprints.geojson",
+        "report.html",
+        *REPORT_FIGURES,
+    }
     cog = client.get(f"/api/jobs/{job['id']}/outputs/mosaic.tif")
     assert cog.status_code == 200 and cog.content[:4] in (b"II*\x00", b"II+\x00")
     assert client.get(f"/api/jobs/{job['id']}/outputs/config.json").status_code == 404  # only named outputs
@@ -181,8 +189,11 @@ def test_docs_render_offline(client: TestClient) -> None:
     assert client.get("/openapi.json").json()["info"]["title"] == "Fotoskhema"
     assert client.get("/api/health").json()["status"] == "ok"
     settings = client.app.state.settings  # type: ignore[attr-defined]
-    assert client.get("/api/config").json() == {
-        "basemap_url": "",
+    config = client.get("/api/config").json()
+    assert config.pop("mosaic_options") == form_options()
+    assert config == {
+        "basemap_url": "https://tile.openstreetmap.org/{z}/{x}/{y}.png",  # OpenStreetMap unless ops set none
+        "basemap_name": "OpenStreetMap",
         "public_read": False,
         "max_upload_bytes": settings.max_upload_bytes,  # the viewer splits uploads by these
         "max_request_bytes": settings.max_request_bytes,
@@ -192,6 +203,35 @@ def test_docs_render_offline(client: TestClient) -> None:
         "import_dirs": 0,
     }
     assert client.get("/vendor/tus/tus.min.js").status_code == 200  # the viewer's tus client, vendored
+    assert client.get("/vendor/geodesic/geographiclib-geodesic.min.js").status_code == 200  # the map's tools
+    assert client.get("/vendor/proj4/proj4.js").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("setting", "url", "name"),
+    [
+        ("none", "", ""),
+        ("", "", ""),
+        ("https://tiles.example.org/{z}/{x}/{y}.png", "https://tiles.example.org/{z}/{x}/{y}.png", "tiles.example.org"),
+    ],
+)
+def test_ops_choose_the_basemap_or_none(client: TestClient, setting: str, url: str, name: str) -> None:
+    client.app.state.settings.basemap_url = setting  # type: ignore[attr-defined]
+    config = client.get("/api/config").json()
+    assert (config["basemap_url"], config["basemap_name"]) == (url, name)
+
+
+def test_the_form_options_are_the_config_models_defaults(client: TestClient) -> None:
+    options = {o["name"]: o for o in client.get("/api/config").json()["mosaic_options"]}
+    assert set(options) == {"output_resolution", "working_max_px", "feature_type", "blend"}
+    assert options["feature_type"]["default"] == {"planar": "orb", "ortho": "sift"}  # by mode, as jobs get them
+    assert options["working_max_px"] == {
+        "name": "working_max_px",
+        "default": {"planar": 2048, "ortho": 2048},
+        "minimum": 256,
+        "maximum": 20000,
+    }
+    assert options["blend"]["choices"] == ["feather", "multiband"]
 
 
 def test_a_succeeded_job_carries_its_report_warnings(client: TestClient, api_settings, frames: list[Path]) -> None:

@@ -404,9 +404,10 @@ def _accepted(path: Path) -> bool:
 
 
 def test_a_jpeg_is_decoded_at_an_eighth_of_its_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A large JPEG is decoded at 1/8 of its size; a small one at the scale that keeps 512 px for the photo check
+    (workers.photo_check), never whole unless it is that small."""
     from PIL import JpegImagePlugin
 
-    Image.fromarray(np.full((1200, 1600, 3), 90, np.uint8)).save(tmp_path / "a.jpg", quality=90)
     decoded: list[tuple[int, int]] = []
     load = JpegImagePlugin.JpegImageFile.load
 
@@ -415,8 +416,11 @@ def test_a_jpeg_is_decoded_at_an_eighth_of_its_size(tmp_path: Path, monkeypatch:
         return load(self)
 
     monkeypatch.setattr(JpegImagePlugin.JpegImageFile, "load", spy)
-    meta = inspect_image(tmp_path / "a.jpg")
-    assert (meta["width"], meta["height"]) == (1600, 1200) and decoded == [(200, 150)]
+    for (w, h), seen in {(4800, 3600): (600, 450), (1600, 1200): (800, 600), (600, 400): (600, 400)}.items():
+        Image.fromarray(np.full((h, w, 3), 90, np.uint8)).save(tmp_path / "a.jpg", quality=90)
+        decoded.clear()
+        meta = inspect_image(tmp_path / "a.jpg")
+        assert (meta["width"], meta["height"]) == (w, h) and set(decoded) == {seen}  # load() runs again, a no-op
     (tmp_path / "cut.jpg").write_bytes((tmp_path / "a.jpg").read_bytes()[:-2000])
     with pytest.raises(InvalidImageError, match="truncated"):
         inspect_image(tmp_path / "cut.jpg")

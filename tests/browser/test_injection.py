@@ -13,6 +13,7 @@ logged as an error.
 
 from __future__ import annotations
 
+import io
 import json
 import re
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import Any
 
 import httpx
 import pytest
+from PIL import Image
 
 from tests.browser.support import ARTIFACTS, MOSAIC_TILES_SETTLED_JS, PageWatch, wait_for
 from tests.crack_scenes import CrackSurveyScene, make_crack_survey
@@ -249,7 +251,7 @@ def test_job_page_map_footprints_and_quality(page_watch, live_service, hostile_m
     box = page.get_by_test_id("map").bounding_box()
     page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
-    expect(tooltip).to_contain_text(re.compile(r"^Frame \d+: "))
+    expect(tooltip).to_contain_text(re.compile(r"^(Camera of f|F)rame \d+: "))  # a footprint, or its camera centre
     expect(tooltip).to_contain_text(re.compile("|".join(re.escape(n) for n in PHOTO_NAMES)))
 
     # The Quality card: every string of the report as text.
@@ -457,6 +459,30 @@ def _calibration_routes(page: Any, service_url: str, job_id: int, kind: str, pat
     page.route(re.compile(rf"/api/jobs/{job_id}$"), lambda route: route.fulfill(json=job))
     page.route(re.compile(rf"/api/{path}/{job_id}$"), lambda route: route.fulfill(json={"job": job, "result": result}))
     page.route(re.compile(rf"/api/jobs/{job_id}/outputs$"), lambda route: route.fulfill(json={"outputs": outputs}))
+    photos = {
+        "pattern": [9, 6],
+        "photos": [
+            {
+                "index": k,
+                "name": name,
+                "side": "left" if kind != "calibration" else "",
+                "pair": k,
+                "width": 64,
+                "height": 48,
+                "corners": [[1.0, 2.0]],
+                "reason": f"reason {IMG}",
+                "marks": None,
+            }
+            for k, name in enumerate(PHOTO_NAMES)
+        ],
+    }
+    page.route(re.compile(rf"/api/{path}/{job_id}/photos$"), lambda route: route.fulfill(json=photos))
+    jpeg = io.BytesIO()
+    Image.new("RGB", (64, 48), (90, 90, 90)).save(jpeg, "JPEG")
+    page.route(
+        re.compile(rf"/api/jobs/{job_id}/photos/\d+/preview"),
+        lambda route: route.fulfill(body=jpeg.getvalue(), content_type="image/jpeg"),
+    )
 
 
 def test_calibration_and_stereo_rig_pages(page_watch, live_service) -> None:
@@ -491,6 +517,9 @@ def test_calibration_and_stereo_rig_pages(page_watch, live_service) -> None:
     expect(page.get_by_test_id("worst-points")).to_contain_text(PHOTO_NAMES[3])
     expect(page.get_by_test_id("left-out")).to_contain_text(f"{PHOTO_NAMES[4]}: no board found")
     expect(result.locator(".downloads")).to_contain_text(f"{IMG}.json (not available)")
+    # the photos and their marks: every name as text, in the photo list and the readout
+    expect(page.get_by_test_id("marks-photo").locator("option").first).to_contain_text(PHOTO_NAMES[0])
+    expect(page.locator('[data-testid="marks-map"] .mark-icon')).to_have_count(1)
     expect(page.get_by_test_id("download-calibration")).to_have_attribute("href", re.compile(r"/api/jobs/9101/"))
     _assert_inert(page, watch, dialogs, live_service.url)
 

@@ -53,6 +53,8 @@ def _hover_map(page: Any, fx: float, fy: float) -> None:
 
 
 def test_dsm_page_shows_relief_legend_and_elevation(signed_in_page, live_service, rpc_pair: RpcPair) -> None:
+    from playwright.sync_api import expect
+
     page, watch = signed_in_page
     files = [("left", ("left.tif", rpc_pair.left.read_bytes())), ("right", ("right.tif", rpc_pair.right.read_bytes()))]
     job_id = live_service.submit("/api/stereo-dems", files, {"method": "sgbm"})
@@ -73,6 +75,19 @@ def test_dsm_page_shows_relief_legend_and_elevation(signed_in_page, live_service
     lat, lon = float(match[3]), float(match[4])
     east, north = Transformer.from_crs(4326, rpc_pair.epsg, always_xy=True).transform(lon, lat)
     assert abs(float(match[1]) - float(rpc_pair.height(np.array(east), np.array(north)))) < 1.5
+
+    # the volume above the lowest point of a square's edge, drawn on the map (the route's own test checks the sum)
+    page.get_by_test_id("volume-base").select_option("lowest")
+    page.get_by_test_id("measure-volume").click()
+    box = page.get_by_test_id("map").bounding_box()
+    for fx, fy in ((0.4, 0.4), (0.6, 0.4), (0.6, 0.6), (0.4, 0.6)):
+        page.mouse.click(box["x"] + fx * box["width"], box["y"] + fy * box["height"])
+    page.get_by_test_id("measure-finish").click()
+    result = page.get_by_test_id("measure-result")
+    expect(result).to_contain_text("volume above the edge's lowest point", timeout=15_000)
+    text = result.text_content()
+    assert "on the ground (geodesic, WGS 84)" in text and "m³, below:" in text and f"EPSG:{rpc_pair.epsg}" in text
+    expect(page.get_by_test_id("cursor-coords")).to_contain_text(f"EPSG:{rpc_pair.epsg}")
     _screenshot(page, "stereo_dem_dsm")
     watch.assert_clean(live_service.url)
 

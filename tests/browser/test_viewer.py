@@ -78,7 +78,7 @@ def test_mosaic_job_from_upload_to_map(signed_in_page, live_service, photos) -> 
     expect(page.locator('[data-testid="map"] .leaflet-overlay-pane path')).to_have_count(n_footprints)
 
     page.get_by_test_id("opacity").fill("50")
-    mosaic_layer = page.locator('[data-testid="map"] .leaflet-tile-pane .leaflet-layer').last
+    mosaic_layer = page.locator('[data-testid="map"] .leaflet-mosaic-pane .leaflet-layer').last
     expect(mosaic_layer).to_have_css("opacity", "0.5")
     page.get_by_test_id("opacity").fill("100")
     expect(page.get_by_test_id("quality")).to_be_visible()  # the report's Quality card, below the map

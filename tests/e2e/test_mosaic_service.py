@@ -164,6 +164,14 @@ def test_ortho_job_with_ground_control(live_service: LiveService, tmp_path: Path
     assert [gcps[f"g{k}"]["role"] for k in range(5)] == ["control"] * 4 + ["checkpoint"]
     assert all(gcps[f"g{k}"]["error_3d_m"] < 0.01 for k in range(4))  # measured 0.4-0.6 mm
     assert gcps["g4"]["error_3d_m"] < 0.03 and tri["checkpoint_rmse_m"] == pytest.approx(gcps["g4"]["error_3d_m"])
+    # the map's GCP layer: each point where surveyed, with the adjustment's role and residual
+    points = json.loads(download(live_service, job["id"], "gcps.geojson", tmp_path / "gcps.geojson").read_text())
+    mapped = {f["properties"]["id"]: f["properties"] for f in points["features"]}
+    assert [mapped[f"g{k}"]["role"] for k in range(5)] == ["control"] * 4 + ["checkpoint"]
+    for k in range(5):
+        error = gcps[f"g{k}"]["error_m"]
+        assert mapped[f"g{k}"]["error_m"] == pytest.approx(error, abs=1e-4)
+        assert mapped[f"g{k}"]["error_horizontal_m"] == pytest.approx(float(np.hypot(*error[:2])), abs=1e-4)
     with rasterio.open(download(live_service, job["id"], "mosaic.tif", tmp_path / "ortho.tif")) as src:
         assert src.crs.to_epsg() == flight.epsg and src.overviews(1)
 

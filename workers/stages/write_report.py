@@ -1,5 +1,6 @@
-"""Stage ``write_report``: ``report.json`` (what was used, how well it fits), frame footprints, and
-``report.html`` with its pictures (``workers.report_html``)."""
+"""Stage ``write_report``: ``report.json`` (what was used, how well it fits), frame footprints (with each
+photo's residuals and camera position), the ground control points as the map has them, and ``report.html``
+with its pictures (``workers.report_html``)."""
 
 from __future__ import annotations
 
@@ -78,7 +79,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     data = _figure_data(ws, cfg, frames, align, geo, to_out, report)
     ws.save_report_html(report_page(report, data, svgs := figures(data), _advice(report, data, cfg)), svgs)
     if geo.georeferenced:
-        ws.save_footprints(_footprint_collection(frames, footprints))
+        ws.save_footprints(_footprint_collection(frames, footprints, _photo_figures(frames, data, geo)))
+        gcps = _gcp_collection(ws, cfg, frames, align, geo, to_out, report)
+        if gcps is not None:
+            ws.save_gcp_points(gcps)
     seams = ws.load_seams()
     if seams is not None:
         ws.save_cutlines(_cutline_collection(frames, seams, geo))
@@ -157,16 +161,107 @@ def _stage_seconds(ws: JobWorkspace, pipeline: str) -> dict[str, float]:
     return out
 
 
-def _footprint_collection(frames: dict[int, Frame], footprints: dict[int, np.ndarray]) -> dict[str, Any]:
+def _footprint_collection(
+    frames: dict[int, Frame], footprints: dict[int, np.ndarray], figures: dict[int, dict[str, Any]]
+) -> dict[str, Any]:
     features = [
         {
             "type": "Feature",
-            "properties": {"index": k, "name": frames[k].name},
+            "properties": {"index": k, "name": frames[k].name, **figures.get(k, {})},
             "geometry": {"type": "Polygon", "coordinates": [np.vstack([c, c[:1]]).round(8).tolist()]},
         }
         for k, c in sorted(footprints.items())
     ]
     return {"type": "FeatureCollection", "features": features}
+
+
+def _photo_figures(frames: dict[int, Frame], data: FigureData, geo: Georef) -> dict[int, dict[str, Any]]:
+    """Per frame, what the viewer colours and shows its footprint by: ``rms_px`` (tie-point RMS in planar mode,
+    reprojection RMS in ortho mode, working-copy px), ``gps_residual_m``, ``camera`` (lon, lat of the camera
+    centre, or of the frame's centre in planar mode) and ``gps`` (lon, lat of its fix)."""
+    per_photo = {name: (rms, gps) for name, rms, gps in data.per_photo}
+    out: dict[int, dict[str, Any]] = {}
+    for k, frame in frames.items():
+        rms, gps_residual = per_photo.get(frame.name, (None, None))
+        camera = data.cameras.get(frame.name)
+        fix = frame.gps or {}
+        out[k] = {
+            "rms_px": _rounded(rms, 4),
+            "gps_residual_m": _rounded(gps_residual, 4),
+            "camera": _to_crs(geo, camera[None, :])[0].round(8).tolist() if camera is not None else None,
+            "gps": [fix["lon"], fix["lat"]] if fix.get("lon") is not None and fix.get("lat") is not None else None,
+        }
+    return out
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    return round(float(value), digits) if value is not None and np.isfinite(value) else None
+
+
+def _gcp_collection(
+    ws: JobWorkspace,
+    cfg: MosaicConfig,
+    frames: dict[int, Frame],
+    align: Alignment,
+    geo: Georef,
+    to_out: np.ndarray,
+    report: dict[str, Any],
+) -> dict[str, Any] | None:
+    """``gcps.geojson``: each ground control point with a surveyed position, as a point there (lon/lat), with its
+    ``role``, where the map puts it (``mapped``, lon/lat) and the difference (``error_m``, east and north, and up
+    in ortho mode). Ortho mode: the adjustment's control points and checkpoints. Planar mode does not use them,
+    so each is a checkpoint: its marks in the photos carried through their homographies onto the mosaic. None
+    when the job has no GCP file (or one that no longer reads)."""
+    path = ws.gcp_file()
+    if path is None or geo.epsg is None:
+        return None
+    sizes = {f.name: (f.orig_width, f.orig_height) for f in frames.values()}
+    try:
+        points = parse_gcp_file(path.name, path.read_text(encoding="utf-8"), sizes, LocalFrame(geo.epsg, 0.0, 0.0))
+    except (ValueError, OSError):
+        return None
+    adjusted = {str(g["id"]): g for g in report.get("triangulation", {}).get("gcps", [])}
+    placed = {frames[k].name: k for k in align.homographies}
+    to_utm = np.array(geo.transform, np.float64).reshape(2, 3)
+    features = []
+    for gcp in points:
+        if gcp.position is None:
+            continue
+        known = np.asarray(gcp.position, np.float64)
+        if cfg.mode == "ortho":
+            entry = adjusted.get(gcp.id, {})
+            role, error = str(entry.get("role", "unused")), entry.get("error_m")
+        else:
+            seen = [
+                apply_homography(to_out @ align.homographies[placed[name]], xy[None, :] * frames[placed[name]].scale)[0]
+                for name, xy in gcp.observations.items()
+                if name in placed
+            ]
+            mapped_en = np.mean([to_utm[:, :2] @ px + to_utm[:, 2] for px in seen], axis=0) if seen else None
+            role, error = "checkpoint", (mapped_en - known[:2]).tolist() if mapped_en is not None else None
+        features.append(_gcp_feature(gcp.id, role, len(gcp.observations), known, error, geo.epsg))
+    return {"type": "FeatureCollection", "features": features}
+
+
+def _gcp_feature(
+    gcp_id: str, role: str, observations: int, known: np.ndarray, error: list[float] | None, epsg: int
+) -> dict[str, Any]:
+    lonlat = utm_to_lonlat(known[None, :2], epsg)[0]
+    valid = isinstance(error, list) and len(error) >= 2 and all(np.isfinite(e) for e in error)
+    mapped = utm_to_lonlat((known[:2] + np.asarray(error[:2]))[None, :], epsg)[0] if valid and error else None
+    return {
+        "type": "Feature",
+        "properties": {
+            "id": gcp_id,
+            "role": role,
+            "observations": observations,
+            "elevation_m": _rounded(known[2], 3) if known.size > 2 else None,
+            "mapped": mapped.round(8).tolist() if mapped is not None else None,
+            "error_m": [round(float(e), 4) for e in error] if valid and error else None,
+            "error_horizontal_m": round(float(np.hypot(error[0], error[1])), 4) if valid and error else None,
+        },
+        "geometry": {"type": "Point", "coordinates": lonlat.round(8).tolist()},
+    }
 
 
 def _cutline_collection(frames: dict[int, Frame], seams: dict[int, list[np.ndarray]], geo: Georef) -> dict[str, Any]:
