@@ -43,26 +43,8 @@ def open_block_writer(
 
     ``rgb`` is (h, w, 3) uint8 in R, G, B order and ``mask`` (h, w) bool, True where there is data.
     """
-    profile: dict[str, Any] = {
-        "driver": "GTiff",
-        "width": width,
-        "height": height,
-        "count": 3,
-        "dtype": "uint8",
-        "tiled": True,
-        "blockxsize": COG_BLOCK_PX,
-        "blockysize": COG_BLOCK_PX,
-        "photometric": "RGB",
-        "interleave": "band",  # a scratch file: the COG is pixel-interleaved
-        "BIGTIFF": "IF_SAFER",
-        "num_threads": "ALL_CPUS",
-    }
-    if compress is not None:
-        profile["compress"] = compress
-    if transform is not None:
-        profile["transform"] = Affine(*transform)
-        if crs is not None:
-            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
+    profile = _tiled_profile(width, height, crs, transform, compress, count=3, dtype="uint8", photometric="RGB")
+    profile.update(interleave="band", num_threads="ALL_CPUS")  # a scratch file: the COG is pixel-interleaved
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
 
         def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
@@ -72,6 +54,35 @@ def open_block_writer(
             dst.write_mask(mask.astype(np.uint8) * np.uint8(255), window=window)
 
         yield write
+
+
+def _tiled_profile(
+    width: int,
+    height: int,
+    crs: int | str | None,
+    transform: list[float] | None,
+    compress: str | None,
+    **bands: Any,
+) -> dict[str, Any]:
+    """A tiled (COG_BLOCK_PX) GeoTIFF's rasterio profile, placed by ``transform`` in ``crs`` (an EPSG code or WKT;
+    none without a transform), compressed unless ``compress`` is None; ``bands``: count, dtype and the like."""
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": width,
+        "height": height,
+        "tiled": True,
+        "blockxsize": COG_BLOCK_PX,
+        "blockysize": COG_BLOCK_PX,
+        "BIGTIFF": "IF_SAFER",
+        **bands,
+    }
+    if compress is not None:
+        profile["compress"] = compress
+    if transform is not None:
+        profile["transform"] = Affine(*transform)
+        if crs is not None:
+            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
+    return profile
 
 
 def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
@@ -130,24 +141,7 @@ def open_index_writer(
 ) -> Iterator[IndexWriter]:
     """A 1-band uint16 tiled GeoTIFF with nodata 0 (a mosaic's frame index); yields ``write(window, index)``,
     ``index`` (h, w) uint16. Placed as :func:`open_block_writer` places the mosaic."""
-    profile: dict[str, Any] = {
-        "driver": "GTiff",
-        "width": width,
-        "height": height,
-        "count": 1,
-        "dtype": "uint16",
-        "nodata": 0,
-        "tiled": True,
-        "blockxsize": COG_BLOCK_PX,
-        "blockysize": COG_BLOCK_PX,
-        "BIGTIFF": "IF_SAFER",
-    }
-    if compress is not None:
-        profile["compress"] = compress
-    if transform is not None:
-        profile["transform"] = Affine(*transform)
-        if crs is not None:
-            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
+    profile = _tiled_profile(width, height, crs, transform, compress, count=1, dtype="uint16", nodata=0)
     with rasterio.open(path, "w", **profile) as dst:
 
         def write(window: Window, index: np.ndarray) -> None:
