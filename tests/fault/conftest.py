@@ -90,9 +90,9 @@ class FaultStack:
         assert self.worker is None or self.worker.poll() is not None, "a worker already runs"
         self.worker = self._new_worker()
 
-    def start_extra_worker(self) -> subprocess.Popen[bytes]:
+    def start_extra_worker(self, queues: str = "cpu,gpu") -> subprocess.Popen[bytes]:
         """One more worker beside the first (scale-out tests); stop it with ``stop_extra_workers``."""
-        worker = self._new_worker()
+        worker = self._new_worker(queues)
         self.extra_workers.append(worker)
         return worker
 
@@ -105,11 +105,11 @@ class FaultStack:
             worker.kill()
             worker.wait()
 
-    def _new_worker(self) -> subprocess.Popen[bytes]:
+    def _new_worker(self, queues: str = "cpu,gpu") -> subprocess.Popen[bytes]:
         self._workers_started += 1
         name = f"fault{self._workers_started}"
         cmd = [sys.executable, "-m", "celery", "-A", "workers.celery_app", "worker", "--include"]
-        cmd += ["tests.fault.worker_faults", "-Q", "cpu,gpu", "--concurrency", "1", "-n", f"{name}@%h"]
+        cmd += ["tests.fault.worker_faults", "-Q", queues, "--concurrency", "1", "-n", f"{name}@%h"]
         cmd += ["--loglevel", "INFO", "--without-gossip", "--without-mingle"]
         worker = _spawn(cmd, self.env, self.logs / f"worker-{name}.log")
         wait_for(lambda: self._beacon_of(name), 60, f"worker {name} ready (log {self.logs})")

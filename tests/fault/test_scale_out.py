@@ -16,6 +16,7 @@ import rasterio
 
 from tests.fault.conftest import STALE_S, FaultStack, _children, wait_for
 from tests.scenes import make_flight
+from workers.pipeline import PIPELINES
 
 pytestmark = pytest.mark.e2e  # real processes, as the end-to-end tests
 
@@ -87,6 +88,25 @@ def test_a_part_that_fails_is_retried_alone(stack: FaultStack, flight: int, one_
     assert (stack.faults / f"failed-once-{job['id']}-{stage}").exists()
     assert stack.starts(job["id"], stage) == 1  # the stage was not planned again: the part was tried again
     _assert_same(_outputs(stack, job["id"]), one_worker)
+
+
+def test_a_gpu_worker_takes_the_gpu_stages_parts(stack: FaultStack, flight: int, one_worker: dict) -> None:
+    """A worker on the gpu queue alone (as `fotoskhema worker --gpu N` would be, less its cpu queue): while it is
+    alive, the parts of the stages that run on a GPU go to it, and nothing else does; the mosaic is the same."""
+    stack.stop_worker()  # the stack's worker takes both queues: a host with a GPU worker has cpu-only ones beside
+    stack.start_extra_worker(queues="cpu")
+    gpu = stack.start_extra_worker(queues="gpu")
+    job = stack.wait_for_end(stack.new_job(flight, **OPTIONS), 180)
+    assert job["status"] == "succeeded", job["error"]
+    done = _outputs(stack, job["id"])
+    _assert_same(done, one_worker)
+    on_gpu = {f"{host}:{pid}" for host in {w.split(":")[0] for w in done["parts"]["load_images"]["by"]}
+              for pid in _children(gpu.pid)}  # fmt: skip
+    gpu_stages = {spec.name for spec in PIPELINES["mosaic"] if spec.gpu}
+    assert gpu_stages == {"detect_features", "match_features"}
+    for stage in PARTED:
+        workers = set(done["parts"][stage]["by"])
+        assert (workers <= on_gpu) if stage in gpu_stages else not (workers & on_gpu), (stage, workers, on_gpu)
 
 
 def test_cancel_reaches_every_part(stack: FaultStack, flight: int) -> None:
