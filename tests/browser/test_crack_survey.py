@@ -146,6 +146,15 @@ def test_two_stage_survey_made_and_read_in_the_browser(signed_in_page, live_serv
     expect(rows).to_have_count(len(scene.stages[0]))
     expect(page.get_by_test_id("residual-row")).to_have_count(2)
     expect(page.locator(".leaflet-overlay-pane path.crack")).to_have_count(len(scene.stages[0]))
+    # how finely this setup sees, per load step: the photos' sampling, the detection raster (finer), and the
+    # narrowest crack found at the survey's crack contrast, over the specimen and at lower contrasts
+    expect(page.get_by_test_id("stage-photo-sampling")).to_have_text(re.compile(r"^0\.\d{3} mm/px$"))
+    expect(page.get_by_test_id("stage-detection-raster")).to_have_text(re.compile(r"^0\.\d{3} mm/px$"))
+    expect(page.get_by_test_id("stage-smallest-width")).to_have_text(re.compile(r"^0\.\d\d mm$"))
+    detectability = page.get_by_test_id("stage-detectability")
+    expect(detectability).to_contain_text(re.compile(r"darker than the coating, as this survey's widest are: "))
+    expect(detectability).to_contain_text(re.compile(r"\d\.\d\d–\d\.\d\d mm over the specimen\. At 30 %: \d\.\d\d mm"))
+    expect(detectability).to_contain_text("fainter than 15 %, none reliably")
     _screenshot(page, "crack_survey_stage1")
 
     page.get_by_test_id("stage-slider").fill("1")
