@@ -154,6 +154,7 @@ def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
 
 
 HAIRLINE_WIDTHS_PX = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+CONTRAST_WIDTHS_PX = (0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
 
 
 def run_hairlines(
@@ -229,6 +230,87 @@ def run_hairlines(
     return rows
 
 
+def run_contrasts(
+    seeds: list[int], angles: list[float], contrasts: list[float], widths_px: tuple[float, ...]
+) -> list[dict[str, Any]]:
+    """Recall against the smallest detectable width the report claims: hairline plates (800 x 600 photos, 0.5
+    px PSF) per seed, angle and contrast, surveyed at the default raster; per true crack, its width in photo
+    px (the true camera's isotropic sampling where it is), whether it was found, and whether the claim
+    (``detection.smallest_detectable_width`` at the true contrast and that sampling) says it is found."""
+    from tests.crack_scenes import crack_sampling, make_crack_survey, run_survey, score_stage
+    from workers.algorithms.cracks import smallest_detectable_width
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds:
+            for angle in angles:
+                for contrast in contrasts:
+                    folder = Path(tmp) / f"s{seed}_{angle:.0f}_{contrast}"
+                    scene = make_crack_survey(
+                        folder / "photos",
+                        [(angle, 15.0)],
+                        seed=seed,
+                        frame_size=(800, 600),
+                        widths_px=widths_px,
+                        contrast=contrast,
+                        blur_px=0.5,
+                    )
+                    options = scene.options(0.0)
+                    del options["mm_per_px"]
+                    report = run_survey(scene, folder / "survey", options)
+                    tolerance = max(1.0, 2 * scene.photo_mm_per_px)
+                    for s, (stage, truth) in enumerate(zip(report["stages"], scene.stages, strict=True)):
+                        score = score_stage(stage, truth, tolerance)
+                        for crack, found in zip(truth, score.found, strict=True):
+                            iso, _ = crack_sampling(scene, crack, s)
+                            claimed = smallest_detectable_width(iso, contrast)
+                            row = {
+                                "seed": seed,
+                                "angle": angle,
+                                "contrast": contrast,
+                                "width_px": round(crack.width_mm / scene.photo_mm_per_px, 2),
+                                "local_px": crack.width_mm / iso,
+                                "found": found > 0.8,
+                                "claimed": claimed is not None and crack.width_mm >= claimed,
+                                "false_share": score.false_mm / score.true_mm,
+                            }
+                            rows.append(row)
+                    print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def print_contrasts(rows: list[dict[str, Any]]) -> None:
+    """Per angle and contrast: recall per width class (nominal photo px) and how the claim held."""
+    from workers.algorithms.cracks import smallest_detectable_width
+
+    widths = sorted({r["width_px"] for r in rows})
+    print("\nrecall per width class (photo px): found/true; claim: cracks at least the smallest detectable width")
+    print(
+        f"{'deg':>3} {'contrast':>8} | "
+        + " ".join(f"{w:>5.2f}" for w in widths)
+        + " | claimed px  found  narrower found"
+    )
+    for angle in sorted({r["angle"] for r in rows}):
+        for contrast in sorted({r["contrast"] for r in rows}):
+            group = [r for r in rows if r["angle"] == angle and r["contrast"] == contrast]
+            cells = []
+            for w in widths:
+                cls = [r["found"] for r in group if r["width_px"] == w]
+                cells.append(f"{sum(cls)}/{len(cls)}" if cls else "-")
+            claimed = [r["found"] for r in group if r["claimed"]]
+            narrower = [r["found"] for r in group if not r["claimed"]]
+            w_min = smallest_detectable_width(1.0, contrast)
+            claim = "none" if w_min is None else f"{w_min:.2f}"
+            print(
+                f"{angle:>3.0f} {contrast:>8.2f} | "
+                + " ".join(f"{c:>5}" for c in cells)
+                + f" | {claim:>10} {sum(claimed):>2}/{len(claimed):<2}"
+                f" {sum(narrower):>5}/{len(narrower)}"
+            )
+    claimed = [r["found"] for r in rows if r["claimed"]]
+    print(f"all: {sum(claimed)} of {len(claimed)} cracks at least the claimed width found")
+
+
 def print_width_errors(rows: list[dict[str, Any]]) -> None:
     """Per angle and width class (photo px), the mean and worst width error (mm) of the unflagged cracks."""
     import numpy as np
@@ -290,13 +372,18 @@ def score_survey(scene: Any, report: dict[str, Any]) -> dict[str, Any]:
     wide: list[float] = []
     narrow: list[tuple[float, bool, bool]] = []  # error, flagged, truth within the stated interval
     true_mm = reported_mm = false_mm = 0.0
+    detectable_true = detectable_reported = 0.0  # cracks at least the width the report says it finds
     for s, (stage, truth) in enumerate(zip(report["stages"], scene.stages, strict=True)):
         score = score_stage(stage, truth, tolerance)
         true_mm += score.true_mm
         reported_mm += stage["total_length_mm"]
         false_mm += score.false_mm
+        smallest = stage["smallest_detectable_width_mm"] or float("inf")
         for crack, share, row in zip(truth, score.found, rows_along(stage, truth, tolerance), strict=True):
             found.setdefault(round(crack.width_mm, 3), []).append(share > 0.8)
+            if crack.width_mm >= smallest:
+                detectable_true += crack.length_mm
+                detectable_reported += row["length_mm"] if row is not None else 0.0
             if share <= 0.8 or row is None:
                 continue
             error = row["width_mm"] - crack.width_mm
@@ -308,6 +395,8 @@ def score_survey(scene: Any, report: dict[str, Any]) -> dict[str, Any]:
     return {
         "recall": {w: f"{sum(v)}/{len(v)}" for w, v in sorted(found.items())},
         "length_error": reported_mm / true_mm - 1,
+        # the cracks at least as wide as the report's smallest detectable width: their reported lengths
+        "length_error_detectable": detectable_reported / detectable_true - 1 if detectable_true else None,
         "false_share": false_mm / true_mm,
         "width_error_2px": wide,
         "width_error_narrow": narrow,
@@ -374,6 +463,10 @@ def _raster_megapixels(root: Path) -> float:
         return float(data["height"].size) / 1e6
 
 
+def _percent(share: float | None) -> str:
+    return "-" if share is None else f"{100 * share:+.1f}%"
+
+
 def print_done_when(rows: list[dict]) -> None:
     """The table of issue 13's "Done when": per angle and output raster, recall per width class, total-length
     error, false length, width errors, and the time it took."""
@@ -381,9 +474,13 @@ def print_done_when(rows: list[dict]) -> None:
 
     classes = sorted({w for r in rows for w in r["recall"]})
     head = " ".join(f"{w:>5.2f}" for w in classes)
-    print("\nrecall per width class (mm): found/true over both load steps; widths: estimate - truth, mm")
     print(
-        f"{'seed':>4} {'deg':>3} {'ratio':>5} {'mm/px':>6} {'photo':>11} | {head} | {'length':>7} {'false':>6} | "
+        "\nrecall per width class (mm): found/true over both load steps; length: total reported against total true,"
+        " '>=min' for the cracks at least the smallest detectable width the report gives; widths: estimate - truth, mm"
+    )
+    print(
+        f"{'seed':>4} {'deg':>3} {'ratio':>5} {'mm/px':>6} {'photo':>11} | {head} | {'length':>7} {'>=min':>6} "
+        f"{'false':>6} | "
         f"{'>=2 px: n  mean  worst':>22} | {'<2 px: n flag in  worst':>23} | {'s':>5}"
     )
     for r in rows:
@@ -399,7 +496,8 @@ def print_done_when(rows: list[dict]) -> None:
         print(
             f"{r['seed']:>4} {r['angle']:>3.0f} {r['ratio']:>5.1f} {r['mm_per_px']:>6.4f} {photo:>11} | "
             + " ".join(f"{r['recall'].get(w, '-'):>5}" for w in classes)
-            + f" | {100 * r['length_error']:>+6.1f}% {100 * r['false_share']:>5.1f}% | {wide_text:>22} | "
+            + f" | {100 * r['length_error']:>+6.1f}% {_percent(r['length_error_detectable']):>6} "
+            f"{100 * r['false_share']:>5.1f}% | {wide_text:>22} | "
             f"{narrow_text:>23} | {r['survey_s']:>5.0f}"
         )
     wide = [e for r in rows for e in r["width_error_2px"]]
@@ -433,11 +531,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--widths-px", type=float, nargs="+", default=list(HAIRLINE_WIDTHS_PX))
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 1.0, 2.0])
     parser.add_argument("--done-when", action="store_true", help="issue 13's plate at 30/45/60 deg, 0.5x/1x/2x")
+    parser.add_argument("--contrasts", type=float, nargs="+", help="recall against the smallest detectable width")
     parser.add_argument("--angles", type=float, nargs="+", default=[30.0, 45.0, 60.0])
     parser.add_argument("--frame", type=int, nargs=2, default=[4000, 3000], metavar=("W", "H"))
     args = parser.parse_args(argv)
     import numpy as np
 
+    if args.contrasts:
+        seeds = args.seeds if args.seeds != [31] else [29, 37]
+        widths = tuple(args.widths_px) if args.widths_px != list(HAIRLINE_WIDTHS_PX) else CONTRAST_WIDTHS_PX
+        recall = run_contrasts(seeds, args.angles, args.contrasts, widths)
+        print_contrasts(recall)
+        if args.json:
+            args.json.write_text(json.dumps(recall, indent=2))
+        return 0
     if args.done_when:
         seeds = args.seeds if args.seeds != [31] else [202]
         done = run_done_when(seeds, args.angles, args.ratios, (args.frame[0], args.frame[1]))
