@@ -15,8 +15,12 @@ loss, so neither the contrast nor the PSF has to be known beforehand.
 
 A crack narrower than that (a couple of photo pixels, or four PSF sigmas) cannot tell C from w: its profile
 is the PSF's, or where it runs along the photo's pixels a flat-topped pixel or two. Its deficit C w stays
-right, and over the contrast of the cracks that are resolved (:func:`reference_contrast`) it is the
-crack's equivalent width (:func:`crack_widths`).
+right, and over the coating's crack contrast, measured on its widest cracks (:func:`reference_contrast`),
+it is the crack's equivalent width (:func:`crack_widths`).
+
+Photo pixels are counted across each crack (:func:`sampling_across`): an oblique view's pixel reaches
+``1 / sin(elevation)`` times farther along the view than across it, so a crack running across the view is
+seen by fewer pixels across it than one running along the view.
 """
 
 from __future__ import annotations
