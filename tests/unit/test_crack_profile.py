@@ -106,10 +106,11 @@ def test_reference_contrast_is_the_long_measurable_cracks() -> None:
 
 
 def test_line_like_drops_blots_not_cracks() -> None:
-    assert line_like(None, 3.0)
-    assert line_like(fit_of(2.0, 0.3, 0.6), 50.0)  # a crack 50 px long
-    assert not line_like(fit_of(6.0, 0.08, 1.0), 20.0)  # a faint blot 20 px long and 6 wide
-    assert not line_like(fit_of(0.5, 0.9, 2.5), 15.0)  # a dark speck blurred over 6 px
+    assert line_like(fit_of(2.0, 0.3, 0.6), 50.0, 5.0)  # a crack 50 px long (its mask is wider)
+    assert line_like(fit_of(1.0, 0.3, 0.5), 25.0, 2.0)  # a hairline as short as the detector keeps
+    assert not line_like(fit_of(6.0, 0.08, 1.0), 40.0, 6.0)  # a faint blot 40 px long and 6 wide
+    assert not line_like(fit_of(0.5, 0.9, 2.5), 50.0, 3.0)  # a dark speck blurred over 6 px
+    assert line_like(None, 30.0, 2.0) and not line_like(None, 20.0, 4.0)  # too short to fit: by its mask
 
 
 def test_sampling_across_follows_the_crack_direction() -> None:

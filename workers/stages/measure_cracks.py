@@ -44,7 +44,11 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         progress(0.8 * s / n, f"load step {s + 1}/{n}")
         cracks, step_fits = _measure_step(ws, cfg, s, mm, photo_mm[s] or mm)
         # blots of the coating's grain the detector took for short cracks: not lines
-        kept = [(c, f) for c, f in zip(cracks, step_fits, strict=True) if line_like(f, c.length_mm / mm)]
+        kept = [
+            (c, f)
+            for c, f in zip(cracks, step_fits, strict=True)
+            if line_like(f, c.length_mm / mm, c.mean_width_mm / mm)
+        ]
         dropped.append(len(cracks) - len(kept))
         measured.append([c for c, _ in kept])
         fits.append([f for _, f in kept])

@@ -272,7 +272,7 @@ def profile_widths(
 RESOLVED_PHOTO_PX = 2.5  # a profile tells its own contrast from its width past this many photo pixels ...
 RESOLVED_BLURS = 4.0  # ... and this many of its PSF sigmas (an oblique view blurs some directions more)
 MEASURED_BLURS = 2.5  # a profile narrower than this many PSF sigmas is the PSF's, whatever the pixels
-LINE_ASPECT = 5.0  # a crack runs at least this many times as far as its profile is wide
+LINE_ASPECT = 10.0  # a crack runs at least this many times as far as its profile is wide
 
 
 def resolved(fit: ProfileFit, photo_px: float) -> bool:
@@ -282,12 +282,14 @@ def resolved(fit: ProfileFit, photo_px: float) -> bool:
     return fit.width_px >= max(RESOLVED_PHOTO_PX * photo_px, RESOLVED_BLURS * fit.blur_px) and fit.contrast <= 1.0
 
 
-def line_like(fit: ProfileFit | None, length_px: float) -> bool:
+def line_like(fit: ProfileFit | None, length_px: float, mask_width_px: float) -> bool:
     """Whether a crack ``length_px`` long with profile ``fit`` is a line: at least ``LINE_ASPECT`` times as
-    long as its profile is wide (its width and 2.5 blur sigmas, in the same px). A shorter dark mark is a
-    blot of the coating's grain, wide and faint (rendered coatings: 1.3-4 times its width, against 50 and
-    more for cracks of 18 mm and longer). Without a fit there is nothing to tell: kept."""
-    return fit is None or length_px >= LINE_ASPECT * (fit.width_px + 2.5 * fit.blur_px)
+    long as its profile is wide (its width and 2.5 blur sigmas, in the same px; without a fit, a crack too
+    short to sample across, its mask's mean width ``mask_width_px``). A shorter dark mark is a blot of the
+    coating's grain, wide and faint, or a smudge far blurrier than the photo: on rendered coatings 1.3-7
+    times as long as wide, against 25 and more for cracks of 18 mm and longer."""
+    width = mask_width_px if fit is None else fit.width_px + 2.5 * fit.blur_px
+    return length_px >= LINE_ASPECT * width
 
 
 def reference_contrast(
