@@ -154,6 +154,7 @@ def run_detection(raster_file: str, mm_per_px: float) -> dict[str, Any]:
 
 
 HAIRLINE_WIDTHS_PX = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+CONTRAST_WIDTHS_PX = (0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
 
 
 def run_hairlines(
@@ -229,6 +230,87 @@ def run_hairlines(
     return rows
 
 
+def run_contrasts(
+    seeds: list[int], angles: list[float], contrasts: list[float], widths_px: tuple[float, ...]
+) -> list[dict[str, Any]]:
+    """Recall against the smallest detectable width the report claims: hairline plates (800 x 600 photos, 0.5
+    px PSF) per seed, angle and contrast, surveyed at the default raster; per true crack, its width in photo
+    px (the true camera's isotropic sampling where it is), whether it was found, and whether the claim
+    (``detection.smallest_detectable_width`` at the true contrast and that sampling) says it is found."""
+    from tests.crack_scenes import crack_sampling, make_crack_survey, run_survey, score_stage
+    from workers.algorithms.cracks import smallest_detectable_width
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds:
+            for angle in angles:
+                for contrast in contrasts:
+                    folder = Path(tmp) / f"s{seed}_{angle:.0f}_{contrast}"
+                    scene = make_crack_survey(
+                        folder / "photos",
+                        [(angle, 15.0)],
+                        seed=seed,
+                        frame_size=(800, 600),
+                        widths_px=widths_px,
+                        contrast=contrast,
+                        blur_px=0.5,
+                    )
+                    options = scene.options(0.0)
+                    del options["mm_per_px"]
+                    report = run_survey(scene, folder / "survey", options)
+                    tolerance = max(1.0, 2 * scene.photo_mm_per_px)
+                    for s, (stage, truth) in enumerate(zip(report["stages"], scene.stages, strict=True)):
+                        score = score_stage(stage, truth, tolerance)
+                        for crack, found in zip(truth, score.found, strict=True):
+                            iso, _ = crack_sampling(scene, crack, s)
+                            claimed = smallest_detectable_width(iso, contrast)
+                            row = {
+                                "seed": seed,
+                                "angle": angle,
+                                "contrast": contrast,
+                                "width_px": round(crack.width_mm / scene.photo_mm_per_px, 2),
+                                "local_px": crack.width_mm / iso,
+                                "found": found > 0.8,
+                                "claimed": claimed is not None and crack.width_mm >= claimed,
+                                "false_share": score.false_mm / score.true_mm,
+                            }
+                            rows.append(row)
+                    print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def print_contrasts(rows: list[dict[str, Any]]) -> None:
+    """Per angle and contrast: recall per width class (nominal photo px) and how the claim held."""
+    from workers.algorithms.cracks import smallest_detectable_width
+
+    widths = sorted({r["width_px"] for r in rows})
+    print("\nrecall per width class (photo px): found/true; claim: cracks at least the smallest detectable width")
+    print(
+        f"{'deg':>3} {'contrast':>8} | "
+        + " ".join(f"{w:>5.2f}" for w in widths)
+        + " | claimed px  found  narrower found"
+    )
+    for angle in sorted({r["angle"] for r in rows}):
+        for contrast in sorted({r["contrast"] for r in rows}):
+            group = [r for r in rows if r["angle"] == angle and r["contrast"] == contrast]
+            cells = []
+            for w in widths:
+                cls = [r["found"] for r in group if r["width_px"] == w]
+                cells.append(f"{sum(cls)}/{len(cls)}" if cls else "-")
+            claimed = [r["found"] for r in group if r["claimed"]]
+            narrower = [r["found"] for r in group if not r["claimed"]]
+            w_min = smallest_detectable_width(1.0, contrast)
+            claim = "none" if w_min is None else f"{w_min:.2f}"
+            print(
+                f"{angle:>3.0f} {contrast:>8.2f} | "
+                + " ".join(f"{c:>5}" for c in cells)
+                + f" | {claim:>10} {sum(claimed):>2}/{len(claimed):<2}"
+                f" {sum(narrower):>5}/{len(narrower)}"
+            )
+    claimed = [r["found"] for r in rows if r["claimed"]]
+    print(f"all: {sum(claimed)} of {len(claimed)} cracks at least the claimed width found")
+
+
 def print_width_errors(rows: list[dict[str, Any]]) -> None:
     """Per angle and width class (photo px), the mean and worst width error (mm) of the unflagged cracks."""
     import numpy as np
@@ -253,6 +335,193 @@ def print_width_errors(rows: list[dict[str, Any]]) -> None:
                 print(f"{angle:4.0f} deg, {w:4.2f} photo px: all {flagged} flagged below photo resolution")
 
 
+ISSUE_WIDTHS_MM = (0.10, 0.15, 0.20, 0.25, 0.30)
+
+
+def issue_scene(folder: Path, angle: float, seed: int, frame: tuple[int, int]) -> Any:
+    """The plate of issue 13: 300 x 200 mm, photos of ``frame`` px (4000 x 3000) with Brown distortion from
+    ``angle`` degrees (0.11-0.16 mm per photo pixel at 4000 x 3000), 8 cracks of 18-60 mm at load step 1 (one
+    grows 15 mm and 2 are new at load step 2), 0.10-0.30 mm wide in turn, 35 % darker than the coating,
+    through a 0.5 px PSF, on grain under uneven light."""
+    from tests.crack_scenes import make_crack_survey
+
+    return make_crack_survey(
+        folder,
+        [(angle, 15.0)],
+        seed=seed,
+        width_mm=300.0,
+        height_mm=200.0,
+        frame_size=frame,
+        widths_mm=ISSUE_WIDTHS_MM,
+        contrast=0.35,
+        blur_px=0.5,
+        cracks=(8, 2),
+        lengths_mm=(18.0, 60.0),
+    )
+
+
+def score_survey(scene: Any, report: dict[str, Any]) -> dict[str, Any]:
+    """A survey's ``report.json`` against its scene's true cracks: recall per width class (mm; a crack is found
+    when 80 % of its centreline lies within max(1 mm, 2 photo px) of a reported crack), total-length error,
+    false length, and the width errors of the cracks found, apart for those at least 2 photo px wide across
+    (the true camera's pixel across each crack) and those narrower (with their flags and intervals)."""
+    from tests.crack_scenes import photo_px_across, rows_along, score_stage
+
+    tolerance = max(1.0, 2 * scene.photo_mm_per_px)
+    found: dict[float, list[bool]] = {}
+    wide: list[float] = []
+    narrow: list[tuple[float, bool, bool]] = []  # error, flagged, truth within the stated interval
+    true_mm = reported_mm = false_mm = 0.0
+    detectable_true = detectable_reported = 0.0  # cracks at least the width the report says it finds
+    for s, (stage, truth) in enumerate(zip(report["stages"], scene.stages, strict=True)):
+        score = score_stage(stage, truth, tolerance)
+        true_mm += score.true_mm
+        reported_mm += stage["total_length_mm"]
+        false_mm += score.false_mm
+        smallest = stage["smallest_detectable_width_mm"] or float("inf")
+        for crack, share, row in zip(truth, score.found, rows_along(stage, truth, tolerance), strict=True):
+            found.setdefault(round(crack.width_mm, 3), []).append(share > 0.8)
+            if crack.width_mm >= smallest:
+                detectable_true += crack.length_mm
+                detectable_reported += row["length_mm"] if row is not None else 0.0
+            if share <= 0.8 or row is None:
+                continue
+            error = row["width_mm"] - crack.width_mm
+            if crack.width_mm >= 2 * photo_px_across(scene, crack, s):
+                wide.append(error)
+            else:
+                inside = abs(error) <= row["width_uncertainty_mm"] + 1e-9
+                narrow.append((error, bool(row["below_photo_resolution"]), inside))
+    return {
+        "recall": {w: f"{sum(v)}/{len(v)}" for w, v in sorted(found.items())},
+        "length_error": reported_mm / true_mm - 1,
+        # the cracks at least as wide as the report's smallest detectable width: their reported lengths
+        "length_error_detectable": detectable_reported / detectable_true - 1 if detectable_true else None,
+        "false_share": false_mm / true_mm,
+        "width_error_2px": wide,
+        "width_error_narrow": narrow,
+    }
+
+
+def run_done_when(seeds: list[int], angles: list[float], ratios: list[float], frame: tuple[int, int]) -> list[dict]:
+    """Issue 13's "Done when" table: the issue's plate per seed and angle, surveyed through ``workers.pipeline``
+    (every stage of a ``crack_survey`` job, as the worker runs them) first with the default ``mm_per_px`` (the
+    photos' own sampling: 1x), then at each ``ratios`` times it."""
+    from tests.crack_scenes import run_survey
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds:
+            for angle in angles:
+                started = time.perf_counter()
+                scene = issue_scene(Path(tmp) / f"s{seed}_{angle:.0f}" / "photos", angle, seed, frame)
+                rendered = time.perf_counter() - started
+                native = None
+                for ratio in sorted(ratios, key=lambda r: r != 1.0):  # 1x, the default, first
+                    options = scene.options(0.0)
+                    if ratio == 1.0:
+                        del options["mm_per_px"]
+                    else:
+                        options["mm_per_px"] = round(ratio * native, 4)
+                    root = Path(tmp) / f"s{seed}_{angle:.0f}" / f"x{ratio}"
+                    started = time.perf_counter()
+                    report = run_survey(scene, root, options)
+                    seconds = time.perf_counter() - started
+                    native = native or report["mm_per_px"]
+                    stage_seconds = {
+                        name: json.loads(f.read_text())["wall_seconds"] for name, f in _stage_reports(root).items()
+                    }
+                    row = {
+                        "seed": seed,
+                        "angle": angle,
+                        "ratio": ratio,
+                        "mm_per_px": report["mm_per_px"],
+                        "photo_mm_per_px": [st["photo_mm_per_px"] for st in report["stages"]],
+                        "detection_mm_per_px": report["detection_mm_per_px"],
+                        "smallest_detectable_width_mm": [st["smallest_detectable_width_mm"] for st in report["stages"]],
+                        "counts": [st["count"] for st in report["stages"]],
+                        "true_counts": [len(t) for t in scene.stages],
+                        **score_survey(scene, report),
+                        "render_s": round(rendered, 1),
+                        "survey_s": round(seconds, 1),
+                        "stage_s": stage_seconds,
+                        "detection_megapixels": _raster_megapixels(root) * len(scene.stages),
+                    }
+                    rows.append(row)
+                    print(json.dumps(row), flush=True)
+    return rows
+
+
+def _stage_reports(root: Path) -> dict[str, Path]:
+    return {f.stem: f for f in sorted((root / "reports").glob("*.json"))}
+
+
+def _raster_megapixels(root: Path) -> float:
+    import numpy as np
+
+    with np.load(root / "rectified" / "surface.npz") as data:
+        return float(data["height"].size) / 1e6
+
+
+def _percent(share: float | None) -> str:
+    return "-" if share is None else f"{100 * share:+.1f}%"
+
+
+def print_done_when(rows: list[dict]) -> None:
+    """The table of issue 13's "Done when": per angle and output raster, recall per width class, total-length
+    error, false length, width errors, and the time it took."""
+    import numpy as np
+
+    classes = sorted({w for r in rows for w in r["recall"]})
+    head = " ".join(f"{w:>5.2f}" for w in classes)
+    print(
+        "\nrecall per width class (mm): found/true over both load steps; length: total reported against total true,"
+        " '>=min' for the cracks at least the smallest detectable width the report gives; widths: estimate - truth, mm"
+    )
+    print(
+        f"{'seed':>4} {'deg':>3} {'ratio':>5} {'mm/px':>6} {'photo':>11} | {head} | {'length':>7} {'>=min':>6} "
+        f"{'false':>6} | "
+        f"{'>=2 px: n  mean  worst':>22} | {'<2 px: n flag in  worst':>23} | {'s':>5}"
+    )
+    for r in rows:
+        wide, narrow = r["width_error_2px"], r["width_error_narrow"]
+        wide_text = f"{len(wide):>2} {np.mean(wide):+.3f} {max(wide, key=abs):+.3f}" if wide else f"{0:>2}"
+        narrow_text = (
+            f"{len(narrow):>2} {sum(f for _, f, _ in narrow):>4} {sum(i for _, _, i in narrow):>2} "
+            f"{max((e for e, _, _ in narrow), key=abs):+.3f}"
+            if narrow
+            else f"{0:>2}"
+        )
+        photo = "-".join(f"{p:.3f}" for p in sorted({min(r["photo_mm_per_px"]), max(r["photo_mm_per_px"])}))
+        print(
+            f"{r['seed']:>4} {r['angle']:>3.0f} {r['ratio']:>5.1f} {r['mm_per_px']:>6.4f} {photo:>11} | "
+            + " ".join(f"{r['recall'].get(w, '-'):>5}" for w in classes)
+            + f" | {100 * r['length_error']:>+6.1f}% {_percent(r['length_error_detectable']):>6} "
+            f"{100 * r['false_share']:>5.1f}% | {wide_text:>22} | "
+            f"{narrow_text:>23} | {r['survey_s']:>5.0f}"
+        )
+    wide = [e for r in rows for e in r["width_error_2px"]]
+    narrow = [n for r in rows for n in r["width_error_narrow"]]
+    if wide:
+        worst = max(wide, key=abs)
+        print(f"cracks >= 2 photo px across: {len(wide)} measured, mean {np.mean(wide):+.3f} mm, worst {worst:+.3f} mm")
+    if narrow:
+        flagged, inside = sum(f for _, f, _ in narrow), sum(i for _, _, i in narrow)
+        worst = max((e for e, _, _ in narrow), key=abs)
+        print(
+            f"cracks < 2 photo px across: {len(narrow)} measured, {flagged} flagged below photo resolution, truth "
+            f"within the stated interval for {inside}, worst {worst:+.3f} mm"
+        )
+    for r in rows:
+        detect = r["stage_s"].get("detect_cracks")
+        if detect:
+            print(
+                f"seed {r['seed']} {r['angle']:.0f} deg x{r['ratio']}: survey {r['survey_s']:.0f} s, detection "
+                f"{detect / r['detection_megapixels']:.1f} s per raster MPx ({r['detection_megapixels']:.1f} MPx), "
+                f"stages {json.dumps(r['stage_s'])}"
+            )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mm-per-px", type=float, default=0.1)
@@ -261,8 +530,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[31])
     parser.add_argument("--widths-px", type=float, nargs="+", default=list(HAIRLINE_WIDTHS_PX))
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 1.0, 2.0])
+    parser.add_argument("--done-when", action="store_true", help="issue 13's plate at 30/45/60 deg, 0.5x/1x/2x")
+    parser.add_argument("--contrasts", type=float, nargs="+", help="recall against the smallest detectable width")
+    parser.add_argument("--angles", type=float, nargs="+", default=[30.0, 45.0, 60.0])
+    parser.add_argument("--frame", type=int, nargs=2, default=[4000, 3000], metavar=("W", "H"))
     args = parser.parse_args(argv)
     import numpy as np
+
+    if args.contrasts:
+        seeds = args.seeds if args.seeds != [31] else [29, 37]
+        widths = tuple(args.widths_px) if args.widths_px != list(HAIRLINE_WIDTHS_PX) else CONTRAST_WIDTHS_PX
+        recall = run_contrasts(seeds, args.angles, args.contrasts, widths)
+        print_contrasts(recall)
+        if args.json:
+            args.json.write_text(json.dumps(recall, indent=2))
+        return 0
+    if args.done_when:
+        seeds = args.seeds if args.seeds != [31] else [202]
+        done = run_done_when(seeds, args.angles, args.ratios, (args.frame[0], args.frame[1]))
+        print_done_when(done)
+        if args.json:
+            args.json.write_text(json.dumps(done, indent=2))
+        return 0
 
     if args.hairlines:
         rows = run_hairlines(args.seeds, widths_px=tuple(args.widths_px), ratios=tuple(args.ratios))

@@ -24,7 +24,8 @@ from scipy.spatial import cKDTree
 from workers.algorithms.geometry import Camera
 
 TEXTURE_MM_PER_PX = 0.1  # resolution of the coating texture and of the crack distance field
-MARKS_MM = ((50.0, 40.0), (150.0, 110.0), (60.0, 115.0))  # control marks besides the corners, (X, Y) mm
+# control marks besides the corners, (X, Y) mm on a 200 x 150 mm specimen (scaled with other sizes)
+MARKS_MM = ((50.0, 40.0), (150.0, 110.0), (60.0, 115.0))
 
 
 @dataclass(frozen=True)
@@ -105,13 +106,14 @@ def _place_cracks(
     spacing_mm: float = 12.0,
     edge_mm: float = 8.0,
     widths_mm: tuple[float, ...] | None = None,
+    lengths_mm: tuple[float, float] = (50.0, 80.0),
 ) -> list[TrueCrack]:
     cracks: list[TrueCrack] = []
     for _ in range(5000):
         if len(cracks) == n:
             return cracks
         start = rng.uniform([edge_mm, edge_mm], [width_mm - edge_mm, height_mm - edge_mm])
-        line = wandering_line(rng, start, rng.uniform(0, 2 * np.pi), rng.uniform(50, 80))
+        line = wandering_line(rng, start, rng.uniform(0, 2 * np.pi), rng.uniform(*lengths_mm))
         inside = (line.min(axis=0) >= edge_mm).all() and (
             line.max(axis=0) <= [width_mm - edge_mm, height_mm - edge_mm]
         ).all()
@@ -132,13 +134,21 @@ def _grow(rng: np.random.Generator, crack: TrueCrack, extra_mm: float) -> TrueCr
 
 
 def make_stages(
-    seed: int, width_mm: float, height_mm: float, widths_mm: tuple[float, ...] | None = None
+    seed: int,
+    width_mm: float,
+    height_mm: float,
+    widths_mm: tuple[float, ...] | None = None,
+    cracks: tuple[int, int] = (5, 2),
+    lengths_mm: tuple[float, float] = (50.0, 80.0),
 ) -> list[list[TrueCrack]]:
-    """Stage 1: five cracks. Stage 2: the same, one of them (listed first) grown by 15 mm, and two new cracks.
-    Widths: uniform in 0.6-1.2 mm, or ``widths_mm`` in turn."""
+    """Stage 1: ``cracks[0]`` cracks. Stage 2: the same, one of them (listed first) grown by 15 mm, and
+    ``cracks[1]`` new cracks. Lengths uniform in ``lengths_mm``; widths uniform in 0.6-1.2 mm, or
+    ``widths_mm`` in turn."""
     rng = np.random.default_rng(seed)
     taken: list[np.ndarray] = []
-    first = _place_cracks(rng, 5, width_mm, height_mm, taken, "first", widths_mm=widths_mm)
+    first = _place_cracks(
+        rng, cracks[0], width_mm, height_mm, taken, "first", widths_mm=widths_mm, lengths_mm=lengths_mm
+    )
     found = _grow_one(rng, first, taken, width_mm, height_mm)
     if found is None:
         raise RuntimeError(f"seed {seed}: no room to grow any crack")
@@ -146,7 +156,7 @@ def make_stages(
     taken[index] = grown.line_mm
     unchanged = [TrueCrack(c.line_mm, c.width_mm, "unchanged") for k, c in enumerate(first) if k != index]
     first.insert(0, first.pop(index))  # the grown crack first in both stages
-    new = _place_cracks(rng, 2, width_mm, height_mm, taken, "new", widths_mm=widths_mm)
+    new = _place_cracks(rng, cracks[1], width_mm, height_mm, taken, "new", widths_mm=widths_mm, lengths_mm=lengths_mm)
     return [first, [grown, *unchanged, *new]]
 
 
@@ -216,13 +226,7 @@ def _coating(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
 
 def crack_field(cracks: list[TrueCrack], shape: tuple[int, int]) -> np.ndarray:
     """(H, W) float32 on the texture grid: max over cracks of (half width - distance to its centreline), mm."""
-    return crack_fields(cracks, shape)[0]
-
-
-def crack_fields(cracks: list[TrueCrack], shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`crack_field` and (H, W) float32 the width (mm) of the crack that field comes from."""
     field = np.full(shape, -1e3, np.float32)
-    widths = np.zeros(shape, np.float32)
     for crack in cracks:
         canvas = np.full(shape, 255, np.uint8)
         points = np.rint(crack.line_mm / TEXTURE_MM_PER_PX * 16).astype(np.int32).reshape(-1, 1, 2)
@@ -233,10 +237,8 @@ def crack_fields(cracks: list[TrueCrack], shape: tuple[int, int]) -> tuple[np.nd
         rows, cols = np.nonzero(distance < crack.width_mm / 2 + 2 * TEXTURE_MM_PER_PX)
         exact, _ = cKDTree(dense_line(crack.line_mm, 0.005)).query(np.column_stack([cols, rows]) * TEXTURE_MM_PER_PX)
         distance[rows, cols] = exact
-        inside = crack.width_mm / 2 - distance
-        widths = np.where(inside > field, np.float32(crack.width_mm), widths)
-        field = np.maximum(field, inside)
-    return field, widths
+        field = np.maximum(field, crack.width_mm / 2 - distance)
+    return field
 
 
 @dataclass(frozen=True)
@@ -324,13 +326,16 @@ class CurvedPanel:
         path.write_text("# curved panel, mm\n" + "\n".join(lines) + "\n")
 
 
-def _normals(field_mm: np.ndarray, sigma_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W) float32 x and y of the unit normal of the nearest crack on the texture grid: the principal
-    direction of the crack field's smoothed gradient tensor (sign-free, so defined on the centreline too)."""
-    gy, gx = np.gradient(field_mm.astype(np.float32))
-    jxx, jxy, jyy = (cv2.GaussianBlur(g, (0, 0), sigma_px) for g in (gx * gx, gx * gy, gy * gy))
-    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
-    return np.cos(theta).astype(np.float32), np.sin(theta).astype(np.float32)
+def _nearest_centreline(cracks: list[TrueCrack], points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For surface points (N, 2) mm: (N,) exact distance to the nearest crack's centreline (points 0.005 mm
+    apart along it), mm; (N,) that crack's width, mm; (N, 2) the centreline's unit normal there."""
+    lines = [dense_line(c.line_mm, 0.005) for c in cracks]
+    tangents = [np.gradient(line, axis=0) for line in lines]
+    tangent = np.concatenate(tangents)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    widths = np.concatenate([np.full(len(line), c.width_mm) for line, c in zip(lines, cracks, strict=True)])
+    distance, index = cKDTree(np.concatenate(lines)).query(points)
+    return distance, widths[index], np.column_stack([-tangent[index, 1], tangent[index, 0]])
 
 
 def _spread_cdf(t: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -351,48 +356,100 @@ def render_photo(
     field_mm: np.ndarray,
     specimen: Plate | CurvedPanel,
     rng: np.random.Generator,
-    widths_mm: np.ndarray | None = None,
+    cracks: list[TrueCrack] | None = None,
     contrast: float = 0.5,
     blur_px: float = 0.0,
 ) -> np.ndarray:
     """(H, W) uint8: the specimen (coating under a light ramp and a directional light, cracks ``contrast``
     darker than the coating) on a dark background, blurred by a Gaussian PSF of ``blur_px``, with noise.
 
-    With ``widths_mm`` (the crack width field of :func:`crack_fields`) a pixel's cover is the exact share of
-    its footprint (the parallelogram of its neighbours' rays on the specimen, the crack locally straight) the
-    crack covers, so a hairline narrower than a pixel darkens it by its width over the footprint's extent
-    across it, and a row of pixels across a crack holds its exact darkness deficit; without, the edge-only
-    approximation ``0.5 + inside / footprint`` (right for cracks wider than a pixel)."""
-    u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+    With ``cracks`` (the true cracks ``field_mm`` was made from) a pixel's cover is the exact share of its
+    footprint (the parallelogram of its neighbours' rays on the specimen, the crack locally straight) the
+    crack covers, at the pixel's exact distance from the nearest crack's centreline (not the field's 0.1 mm
+    grid, whose interpolation rounds the centreline's ridge off by up to 0.05 mm), so a hairline narrower
+    than a pixel darkens it by its width over the footprint's extent across it, and a row of pixels across
+    a crack holds its exact darkness deficit; without, the edge-only approximation ``0.5 + inside /
+    footprint`` (right for cracks wider than a pixel). Rendered in bands of rows (a 4000 x 3000 photo
+    would hold some 5 GiB of float64 rays and maps at once)."""
+    centrelines = None if cracks is None else _Centrelines.of(cracks)
+    image = np.empty((camera.height, camera.width), np.float64)
+    step = max(1, (1 << 20) // camera.width)
+    for top in range(0, camera.height, step):
+        stop = min(top + step, camera.height)
+        image[top:stop] = _render_rows(camera, R, C, coating, field_mm, specimen, top, stop, centrelines, contrast)
+    if blur_px > 0:
+        image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), blur_px)
+    image = image + rng.normal(0, 3.0, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class _Centrelines:
+    """Every crack's centreline as points 0.005 mm apart, with that crack's width and the unit normal there."""
+
+    tree: cKDTree
+    widths: np.ndarray  # (M,) mm
+    normals: np.ndarray  # (M, 2)
+
+    @classmethod
+    def of(cls, cracks: list[TrueCrack]) -> _Centrelines:
+        lines = [dense_line(c.line_mm, 0.005) for c in cracks]
+        tangent = np.concatenate([np.gradient(line, axis=0) for line in lines])
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+        widths = np.concatenate([np.full(len(line), c.width_mm) for line, c in zip(lines, cracks, strict=True)])
+        return cls(cKDTree(np.concatenate(lines)), widths, np.column_stack([-tangent[:, 1], tangent[:, 0]]))
+
+    def nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For surface points (N, 2) mm: (N,) exact distance to the nearest centreline, mm, (N,) that crack's
+        width, mm, and (N, 2) its unit normal there."""
+        distance, index = self.tree.query(points)
+        return distance, self.widths[index], self.normals[index]
+
+
+def _render_rows(
+    camera: Camera,
+    R: np.ndarray,
+    C: np.ndarray,
+    coating: np.ndarray,
+    field_mm: np.ndarray,
+    specimen: Plate | CurvedPanel,
+    top: int,
+    stop: int,
+    centrelines: _Centrelines | None,
+    contrast: float,
+) -> np.ndarray:
+    """(stop - top, W) float64 grey of photo rows ``top:stop`` of :func:`render_photo`, before blur and noise."""
+    first, last = max(top - 1, 0), min(stop + 1, camera.height)  # a row of margin for the footprint's gradient
+    u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(first, last, dtype=np.float64))
     rays = camera.unproject(np.column_stack([u.ravel(), v.ravel()])) @ R  # R.T @ ray per row
     sy, hit, lit = specimen.trace(C, rays)
-    xy = sy.reshape(camera.height, camera.width, 2)
-    on_plate = hit.reshape(xy.shape[:2])
+    xy = sy.reshape(last - first, camera.width, 2)
+    # the pixel's footprint on the plate (mm): a crack darkens it by the share of the footprint it covers
+    du, dv = np.gradient(xy, axis=1), np.gradient(xy, axis=0)
+    keep = slice(top - first, stop - first)
+    xy, du, dv = xy[keep], du[keep], dv[keep]
+    on_plate = hit.reshape(-1, camera.width)[keep]
     width_mm, height_mm = specimen.width_mm, specimen.height_mm
-    shade = (0.55 + 0.45 * np.clip(lit, 0, 1) / -LIGHT[2]).reshape(xy.shape[:2])  # 1 where facing -Z
+    shade = (0.55 + 0.45 * np.clip(lit, 0, 1) / -LIGHT[2]).reshape(-1, camera.width)[keep]  # 1 where facing -Z
     col, row = (xy[..., 0] / TEXTURE_MM_PER_PX).astype(np.float32), (xy[..., 1] / TEXTURE_MM_PER_PX).astype(np.float32)
     albedo = cv2.remap(coating, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     inside = cv2.remap(field_mm, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    # the pixel's footprint on the plate (mm): a crack darkens it by the share of the footprint it covers
-    du, dv = np.gradient(xy, axis=1), np.gradient(xy, axis=0)
     footprint = np.sqrt(np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]))
-    if widths_mm is None:
+    if centrelines is None:
         cover = np.clip(0.5 + inside / footprint, 0.0, 1.0)
     else:
-        w = cv2.remap(widths_mm, col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT)
-        d = np.maximum(w / 2 - inside, 0.0)  # distance from the crack's centreline
+        cover = np.zeros(on_plate.shape)
+        # every pixel whose footprint may reach a crack (the field is good to a texture pixel out there)
+        reach = 2 * (np.abs(du).sum(-1) + np.abs(dv).sum(-1)) + 3 * TEXTURE_MM_PER_PX
+        near = on_plate & (inside > -reach)
+        d, w, n = centrelines.nearest(xy[near])
         # the footprint is the parallelogram du x dv: across the crack (normal n) it spreads as the sum of two
         # uniform variables |du . n| and |dv . n| wide (an oblique view's pixels are longer along the view)
-        nx, ny = (cv2.remap(c, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT) for c in _normals(field_mm))
-        a = np.maximum(np.abs(du[..., 0] * nx + du[..., 1] * ny), 1e-3 * footprint)
-        b = np.maximum(np.abs(dv[..., 0] * nx + dv[..., 1] * ny), 1e-3 * footprint)
-        cover = np.clip(_spread_cdf(d + w / 2, a, b) - _spread_cdf(d - w / 2, a, b), 0.0, 1.0)
+        a = np.maximum(np.abs(np.einsum("ij,ij->i", du[near], n)), 1e-3 * footprint[near])
+        b = np.maximum(np.abs(np.einsum("ij,ij->i", dv[near], n)), 1e-3 * footprint[near])
+        cover[near] = np.clip(_spread_cdf(d + w / 2, a, b) - _spread_cdf(d - w / 2, a, b), 0.0, 1.0)
     light = 0.75 + 0.5 * (0.6 * xy[..., 0] / width_mm + 0.4 * (1 - xy[..., 1] / height_mm))  # from the top right
-    image = np.where(on_plate, albedo * light * shade * (1 - contrast * cover), 45.0)
-    if blur_px > 0:
-        image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), blur_px)
-    image = image + rng.normal(0, 3.0, on_plate.shape)
-    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    return np.where(on_plate, albedo * light * shade * (1 - contrast * cover), 45.0)
 
 
 def make_crack_survey(
@@ -406,18 +463,23 @@ def make_crack_survey(
     widths_px: tuple[float, ...] | None = None,
     contrast: float = 0.5,
     blur_px: float = 0.0,
+    widths_mm: tuple[float, ...] | None = None,
+    cracks: tuple[int, int] = (5, 2),
+    lengths_mm: tuple[float, float] = (50.0, 80.0),
 ) -> CrackSurveyScene:
     """Render two load stages, each photographed from ``views`` (elevation, azimuth) degrees, to PNGs.
 
     The specimen is a plate, or with ``panel_radius_mm`` a :class:`CurvedPanel` of arc width ``width_mm``
     whose mesh is written to ``out_dir / "panel.obj"`` (the scene's ``mesh_path``). The camera is re-set
-    between stages (a few mm and a degree off); control points are the specimen's corners and
-    ``MARKS_MM`` (in surface coordinates), projected through the true camera with 0.3 px noise.
+    between stages (a few mm and a degree off); control points are the specimen's corners and ``MARKS_MM``
+    (in surface coordinates, scaled to the specimen's size), projected through the true camera with 0.3 px
+    noise.
 
     Hairline scenes: ``widths_px`` gives the cracks' widths in turn in photo pixels of the first view (its
-    nominal sampling at the plate's centre, ``scene.photo_mm_per_px``; a plate only), rendered with exact
-    sub-pixel cover, ``contrast`` (share of the coating's brightness a crack takes away) and a Gaussian
-    PSF of ``blur_px`` photo pixels.
+    nominal sampling at the plate's centre, ``scene.photo_mm_per_px``; a plate only), or ``widths_mm`` in
+    mm, rendered with exact sub-pixel cover, ``contrast`` (share of the coating's brightness a crack takes
+    away) and a Gaussian PSF of ``blur_px`` photo pixels. ``cracks``: how many at stage 1 and how many new
+    at stage 2, ``lengths_mm``: the range of their lengths (:func:`make_stages`).
     """
     rng = np.random.default_rng(seed)
     w, h = frame_size
@@ -425,25 +487,26 @@ def make_crack_survey(
     specimen = (
         Plate(width_mm, height_mm) if panel_radius_mm is None else CurvedPanel(width_mm, height_mm, panel_radius_mm)
     )
-    widths_mm = None
     sampling = nominal_sampling(camera, width_mm, height_mm, *views[0])
+    exact_cover = widths_px is not None or widths_mm is not None
+    if exact_cover and panel_radius_mm is not None:
+        raise ValueError("hairline widths are for a plate")
     if widths_px is not None:
-        if panel_radius_mm is not None:
-            raise ValueError("hairline widths in photo px are for a plate")
         widths_mm = tuple(w * sampling for w in widths_px)
-    stages = make_stages(seed, width_mm, height_mm, widths_mm)
+    stages = make_stages(seed, width_mm, height_mm, widths_mm, cracks, lengths_mm)
     scene = CrackSurveyScene(width_mm, height_mm, camera, stages, specimen=specimen, photo_mm_per_px=sampling)
     shape = (int(round(height_mm / TEXTURE_MM_PER_PX)) + 1, int(round(width_mm / TEXTURE_MM_PER_PX)) + 1)
     coating = _coating(rng, shape)
-    model = specimen.to_model(np.array([[0, 0], [width_mm, 0], [0, height_mm], [width_mm, height_mm], *MARKS_MM]))
+    marks = np.array(MARKS_MM) * [width_mm / 200.0, height_mm / 150.0]
+    model = specimen.to_model(np.array([[0, 0], [width_mm, 0], [0, height_mm], [width_mm, height_mm], *marks]))
     out_dir.mkdir(parents=True, exist_ok=True)
     if isinstance(specimen, CurvedPanel):
         scene.mesh_path = out_dir / "panel.obj"
         specimen.write_mesh(scene.mesh_path)
     extent = specimen.chord_mm if isinstance(specimen, CurvedPanel) else width_mm
     for s, cracks in enumerate(scene.stages):
-        field_mm, width_field = crack_fields(cracks, shape)
-        exact = width_field if widths_px is not None else None
+        field_mm = crack_field(cracks, shape)
+        exact = cracks if exact_cover else None
         for k, (elevation, azimuth) in enumerate(views):
             R, C = oblique_pose(camera, extent, height_mm, elevation + rng.uniform(-1, 1), azimuth + rng.uniform(-2, 2))
             C = C + rng.uniform(-3, 3, 3)
@@ -522,3 +585,36 @@ def rows_along(stage: dict, truth: list[TrueCrack], tolerance_mm: float) -> list
                 best, best_share = row, share
         out.append(best)
     return out
+
+
+def photo_px_across(scene: CrackSurveyScene, crack: TrueCrack, stage: int) -> float:
+    """The true photo sampling across ``crack`` in load step ``stage``, mm per photo pixel (see
+    :func:`crack_sampling`). A crack ``w`` mm wide spans ``w / photo_px_across`` photo pixels across it."""
+    return crack_sampling(scene, crack, stage)[1]
+
+
+def crack_sampling(scene: CrackSurveyScene, crack: TrueCrack, stage: int) -> tuple[float, float]:
+    """The true photo sampling where ``crack`` is in load step ``stage``, mm per photo pixel: isotropic (the
+    square root of a photo pixel's area on the plate) and across the crack (the extent along its normal
+    ``n`` of a photo pixel, ``|J^-T n|`` with ``J`` the true camera's Jacobian of photo pixel by plate (x, y)
+    mm), medians along its centreline, each point from its most finely sampling photo (a plate only)."""
+    points = dense_line(crack.line_mm, 0.5)
+    tangent = np.gradient(points, axis=0)
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    model = np.column_stack([points, np.zeros(len(points))])
+    best_density, across = np.zeros(len(points)), np.full(len(points), np.nan)
+    for photo in (p for p in scene.photos if p.stage == stage):
+
+        def project(offset: list[float], photo: Photo = photo) -> np.ndarray:
+            return scene.camera.project((model + offset - photo.C) @ photo.R.T)
+
+        step = 1e-3  # mm
+        du = (project([step, 0, 0]) - project([-step, 0, 0])) / (2 * step)
+        dv = (project([0, step, 0]) - project([0, -step, 0])) / (2 * step)
+        J = np.stack([du, dv], axis=2)  # (N, 2 photo, 2 plate): photo px per mm
+        density = np.abs(np.linalg.det(J))
+        better = density > best_density
+        across[better] = np.linalg.norm(np.einsum("nji,nj->ni", np.linalg.inv(J), normal), axis=1)[better]
+        best_density = np.maximum(best_density, density)
+    return float(np.median(1.0 / np.sqrt(best_density))), float(np.nanmedian(across))

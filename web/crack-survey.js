@@ -135,7 +135,7 @@ async function showSurvey(view, jobId, card, residualCard) {
   function show(s) {
     current = s;
     const step = steps[s];
-    stepPanel.replaceChildren(slider, stepFacts(step, steps[s - 1], outputUrls, plane));
+    stepPanel.replaceChildren(slider, stepFacts(step, steps[s - 1], outputUrls, plane, report));
     legend.replaceChildren(...legendList(list(step.cracks)));
     cracks.draw(list(step.cracks));
     Object.assign(table, crackTable(step, (id) => cracks.select(id)));
@@ -169,8 +169,9 @@ function stepSlider(steps, onStep) {
 }
 
 /** The load step's name, load and figures (and a mesh's rectification plane), and what changed since the load
- * step before; a link to its overlay PNG when the outputs list (`outputUrls`: name -> signed URL) has it. */
-function stepFacts(step, previous, outputUrls, plane) {
+ * step before; a link to its overlay PNG when the outputs list (`outputUrls`: name -> signed URL) has it.
+ * `report` gives the contrast its smallest detectable width is for. */
+function stepFacts(step, previous, outputUrls, plane, report) {
   const cracks = list(step.cracks);
   const counts = countBy(cracks);
   let changes;
@@ -198,9 +199,10 @@ function stepFacts(step, previous, outputUrls, plane) {
       ["Photo sampling", formatNumber(step.photo_mm_per_px, 3, "mm/px"), { "data-testid": "stage-photo-sampling" }],
       ["Detection raster", formatNumber(step.detection_mm_per_px, 3, "mm/px"), { "data-testid": "stage-detection-raster" }],
       ["Smallest detectable width", formatNumber(step.smallest_detectable_width_mm, 2, "mm"),
-        { "data-testid": "stage-smallest-width", title: "at 30 % contrast against the coating" }],
+        { "data-testid": "stage-smallest-width", title: "The narrowest crack the detector finds reliably here" }],
       ...(plane ? plane.rows : []),
     ]),
+    detectability(step, report),
     step.overlay && outputUrls.get(step.overlay) ? h("p", { class: "small" }, h("a", {
       href: outputUrls.get(step.overlay), download: step.overlay, "data-testid": "stage-overlay",
     }, "This load step with its cracks drawn (PNG)")) : null);
@@ -354,13 +356,35 @@ function meshPlane(report) {
   };
 }
 
-/** A crack's width with its uncertainty, or "< x (below photo resolution)" where the photos cannot resolve it. */
+/** What the smallest detectable width is for: the contrast (this survey's widest cracks', or 30 % when none
+ * was wide enough to tell), its range over the specimen (the photos sample it more finely nearer the camera),
+ * and the width at lower contrasts. */
+function detectability(step, report) {
+  const contrast = report.detectability_contrast;
+  if (typeof contrast !== "number" || !("smallest_detectable_width_mm" in step)) return null;
+  const percent = (c) => `${formatNumber(100 * c, 0)} %`;
+  const measured = typeof report.crack_contrast === "number";
+  const range = Array.isArray(step.smallest_detectable_width_range_mm) ? step.smallest_detectable_width_range_mm : [];
+  const parts = [`For cracks ${percent(contrast)} darker than the coating${measured ? ", as this survey's widest are" : " (assumed: no crack here was wide enough to tell)"}`];
+  if (range.length === 2 && range.every((w) => typeof w === "number")) {
+    parts.push(`: ${formatNumber(range[0], 2)}–${formatNumber(range[1], 2)} mm over the specimen`);
+  }
+  const fainter = list(step.detectable_width_by_contrast)
+    .filter((r) => typeof r.contrast === "number" && r.contrast < contrast - 0.025 && [0.15, 0.2, 0.3].some((c) => Math.abs(c - r.contrast) < 1e-9));
+  const shown = fainter.filter((r) => typeof r.width_mm === "number").reverse();
+  if (shown.length) parts.push(`. At ${shown.map((r) => `${percent(r.contrast)}: ${formatNumber(r.width_mm, 2)} mm`).join(", ")}`);
+  parts.push(`; fainter than ${percent(0.15)}, none reliably.`);
+  return h("p", { class: "muted small", "data-testid": "stage-detectability" }, parts.join(""));
+}
+
+/** A crack's width with its uncertainty, or "≈ x (≤ y, below photo resolution)" where the photos cannot resolve
+ * it: its equivalent width (its darkness over the coating's crack contrast) and the most it can be. */
 function widthText(crack) {
   if (typeof crack.width_mm !== "number") return "–";
   if (crack.below_photo_resolution) {
     const bound = crack.width_mm + (crack.width_uncertainty_mm || 0);
-    return h("span", { "data-testid": "below-resolution", title: "narrower than the photos resolve" },
-      `< ${formatNumber(bound, 2)} (below photo resolution)`);
+    return h("span", { "data-testid": "below-resolution", title: "narrower than the photos resolve: its width from its darkness, if as dark as the wider cracks" },
+      `≈ ${formatNumber(crack.width_mm, 2)} (≤ ${formatNumber(bound, 2)}, below photo resolution)`);
   }
   return `${formatNumber(crack.width_mm, 2)} ± ${formatNumber(crack.width_uncertainty_mm, 2)}`;
 }

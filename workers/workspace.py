@@ -395,9 +395,21 @@ class JobWorkspace:
     def _rectified_file(self, step: int) -> Path:
         return self.root / "rectified" / f"stage_{step:02d}.npz"
 
-    def save_rectified(self, step: int, image: np.ndarray, mask: np.ndarray) -> None:
-        """Load step ``step``'s photos rectified onto the specimen: image and coverage mask."""
-        _save_npz(self._rectified_file(step), image=image, mask=mask)
+    def save_rectified(
+        self, step: int, image: np.ndarray, mask: np.ndarray, footprint: tuple[np.ndarray, float] | None = None
+    ) -> None:
+        """Load step ``step``'s photos rectified onto the specimen: image and coverage mask, and the photos'
+        pixel footprint on a coarse raster of the plane with its mm per px (``specimen.photo_footprint``)."""
+        extra = {} if footprint is None else {"footprint": footprint[0], "footprint_mm_per_px": np.array(footprint[1])}
+        _save_npz(self._rectified_file(step), image=image, mask=mask, **extra)
+
+    def load_photo_footprint(self, step: int) -> tuple[np.ndarray, float] | None:
+        """``(h, w, 3) float32`` photo pixel footprint of load step ``step`` and its raster's mm per px (None
+        when ``rectify_specimen`` wrote none)."""
+        with np.load(self._rectified_file(step)) as data:
+            if "footprint" not in data:
+                return None
+            return data["footprint"], float(data["footprint_mm_per_px"])
 
     def load_rectified(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         """``(H, W, 3) uint8`` BGR rectified image and ``(H, W) bool`` mask of what the photos see."""
@@ -734,6 +746,7 @@ def crack_to_json(crack: Crack) -> dict[str, Any]:
         "orientation_deg": crack.orientation_deg,
         "endpoints_mm": crack.endpoints_mm.tolist(),
         "bbox_mm": list(crack.bbox_mm),
+        "photo_mm_per_px": crack.photo_mm_per_px,
     }
 
 
@@ -753,6 +766,7 @@ def crack_from_json(data: dict[str, Any]) -> Crack:
             float(data["bbox_mm"][2]),
             float(data["bbox_mm"][3]),
         ),
+        photo_mm_per_px=None if data.get("photo_mm_per_px") is None else float(data["photo_mm_per_px"]),
     )
 
 

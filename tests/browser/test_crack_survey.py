@@ -146,6 +146,15 @@ def test_two_stage_survey_made_and_read_in_the_browser(signed_in_page, live_serv
     expect(rows).to_have_count(len(scene.stages[0]))
     expect(page.get_by_test_id("residual-row")).to_have_count(2)
     expect(page.locator(".leaflet-overlay-pane path.crack")).to_have_count(len(scene.stages[0]))
+    # how finely this setup sees, per load step: the photos' sampling, the detection raster (finer), and the
+    # narrowest crack found at the survey's crack contrast, over the specimen and at lower contrasts
+    expect(page.get_by_test_id("stage-photo-sampling")).to_have_text(re.compile(r"^0\.\d{3} mm/px$"))
+    expect(page.get_by_test_id("stage-detection-raster")).to_have_text(re.compile(r"^0\.\d{3} mm/px$"))
+    expect(page.get_by_test_id("stage-smallest-width")).to_have_text(re.compile(r"^0\.\d\d mm$"))
+    detectability = page.get_by_test_id("stage-detectability")
+    expect(detectability).to_contain_text(re.compile(r"darker than the coating, as this survey's widest are: "))
+    expect(detectability).to_contain_text(re.compile(r"\d\.\d\d–\d\.\d\d mm over the specimen\. At 30 %: \d\.\d\d mm"))
+    expect(detectability).to_contain_text("fainter than 15 %, none reliably")
     _screenshot(page, "crack_survey_stage1")
 
     page.get_by_test_id("stage-slider").fill("1")
@@ -168,14 +177,22 @@ def test_two_stage_survey_made_and_read_in_the_browser(signed_in_page, live_serv
     _screenshot(page, "crack_survey_stage2")
     expect(page.get_by_test_id("survey-warning")).to_have_count(0)  # the 0.25 mm raster suits these photos
 
-    def with_warning(route: Any) -> None:  # the report of a survey rasterised far finer than its photos
+    def with_warning(route: Any) -> None:
+        """The report of a survey rasterised far finer than its photos, whose first crack is a hairline below
+        photo resolution and none wide enough to tell the cracks' contrast."""
         answer = route.fetch().json()
         answer["result"]["warnings"] = ["stage '10 kN': the photos resolve 0.3 mm per pixel on the specimen"]
+        answer["result"]["crack_contrast"] = None
+        hairline = answer["result"]["stages"][0]["cracks"][0]
+        hairline.update(width_mm=0.1, width_uncertainty_mm=0.12, below_photo_resolution=True)
         route.fulfill(json=answer)
 
     page.route(re.compile(r"/api/crack-surveys/\d+$"), with_warning)
     page.reload()
     expect(page.get_by_test_id("survey-warning")).to_contain_text("the photos resolve 0.3 mm per pixel")
+    expect(page.get_by_test_id("below-resolution")).to_have_text("≈ 0.10 (≤ 0.22, below photo resolution)")
+    expect(page.get_by_test_id("stage-detectability")).to_contain_text("no crack here was wide enough to tell")
+    _screenshot(page, "crack_survey_hairline")
     watch.assert_clean(live_service.url)
 
 

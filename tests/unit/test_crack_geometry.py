@@ -252,14 +252,16 @@ def test_width_from_darkness_not_from_a_fat_mask(width: float, tolerance: float)
 
 
 def test_widths_below_photo_resolution_are_flagged_and_resolved_ones_kept() -> None:
-    """A profile width under 1.7 photo px is only bounded (flagged, [0, 2 px]); a wider one is kept, with an
-    uncertainty that grows with the width and stays a fraction of a photo pixel."""
+    """A profile width under 1.7 photo px is flagged: its (equivalent) width is kept, with an interval that
+    holds every width from 0 to 1.7 px; a wider one is kept, with an uncertainty that grows with the width and
+    stays a fraction of a photo pixel."""
     from workers.algorithms.cracks import estimate_width
 
     p = 0.4  # mm per photo pixel
     for width_px in (0.3, 1.0, 1.65):
         low = estimate_width(width_px * p, p)
-        assert low.below_photo_resolution and low.width_mm + low.uncertainty_mm == pytest.approx(2 * p)
+        assert low.below_photo_resolution and low.width_mm == pytest.approx(width_px * p)
+        assert low.width_mm - low.uncertainty_mm <= 1e-12 and low.width_mm + low.uncertainty_mm >= 1.7 * p - 1e-12
     previous = 0.0
     for width_px in (1.75, 2.0, 3.0, 5.0):
         estimate = estimate_width(width_px * p, p)

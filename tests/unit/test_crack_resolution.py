@@ -10,6 +10,7 @@ import pytest
 import rasterio
 
 from tests.crack_scenes import CrackSurveyScene, make_crack_survey, run_survey
+from workers.algorithms.cracks import smallest_detectable_width
 
 RATIOS = (0.5, 1.0, 2.0)  # output mm_per_px over the photos' sampling
 
@@ -26,8 +27,11 @@ def test_counts_and_lengths_do_not_depend_on_mm_per_px(scene: CrackSurveyScene, 
     native = min(s["photo_mm_per_px"] for s in default["stages"])
     assert abs(default["mm_per_px"] / native - 1) < 0.05, (default["mm_per_px"], native)
     assert default["detection_mm_per_px"] <= native  # detection at or finer than the photos' sampling
-    for stage in default["stages"]:
-        assert stage["smallest_detectable_width_mm"] == pytest.approx(stage["photo_mm_per_px"])
+    for stage in default["stages"]:  # at the contrast the survey measured its cracks at (none: 30 %)
+        smallest = smallest_detectable_width(stage["photo_mm_per_px"], default["detectability_contrast"])
+        assert stage["smallest_detectable_width_mm"] == pytest.approx(smallest)
+        low, high = stage["smallest_detectable_width_range_mm"]
+        assert low <= stage["smallest_detectable_width_mm"] <= high
     truth = [len(s) for s in scene.stages]
     assert [s["count"] for s in default["stages"]] == truth
     for ratio in RATIOS:

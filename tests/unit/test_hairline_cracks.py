@@ -1,6 +1,7 @@
 """Hairline cracks of a brittle coating, 0.5-3 photo pixels wide, 30 % darker than the coating, under
 uneven light, on grain, through a blurred lens (``tests/crack_scenes.py``, exact sub-pixel cover): every
-crack at least one photo pixel wide is found, whatever the output raster, and little else is."""
+crack at least one photo pixel wide is found, whatever the output raster, and little else is. At lower
+contrast the report's smallest detectable width holds: every crack at least that wide is found."""
 
 from __future__ import annotations
 
@@ -40,8 +41,10 @@ def test_every_crack_one_photo_pixel_wide_is_found(hairlines: CrackSurveyScene, 
             recall[round(crack.width_mm / hairlines.photo_mm_per_px, 2)].append(found)
         false_mm += score.false_mm
         true_mm += score.true_mm
-        # the report says how fine this setup sees: one photo pixel at this contrast
-        assert stage["smallest_detectable_width_mm"] == pytest.approx(stage["photo_mm_per_px"])
+        # the report says how fine this setup sees: about one photo pixel at the cracks' contrast, which it
+        # measured on the widest of them
+        assert abs(report["crack_contrast"] - CONTRAST) < 0.03
+        assert stage["smallest_detectable_width_mm"] < 1.5 * stage["photo_mm_per_px"]
         assert abs(stage["photo_mm_per_px"] / hairlines.photo_mm_per_px - 1) < 0.1
     print({w: round(float(np.mean([f > 0.8 for f in r])), 2) for w, r in sorted(recall.items())}, false_mm / true_mm)
     for width_px, shares in recall.items():
@@ -71,3 +74,30 @@ def test_widths_are_flagged_below_photo_resolution_and_honest_above(
                 error = abs(row["width_mm"] - crack.width_mm)
                 assert error < 0.05 and error < 3 * row["width_uncertainty_mm"], (crack.width_mm, row["width_mm"])
     assert checked >= 6
+
+
+def test_fainter_cracks_as_wide_as_the_report_says_are_found(tmp_path: Path) -> None:
+    """At 20 % contrast and 60 degrees (seed 53, no tuning used it; the claim was measured at 45 degrees), the
+    report measures the cracks' contrast on the widest of them and says how narrow a crack of that contrast
+    it finds, at worst over the specimen: every crack at least that wide is found."""
+    scene = make_crack_survey(
+        tmp_path / "photos",
+        [(60.0, 15.0)],
+        seed=53,
+        frame_size=(640, 480),
+        widths_px=(1.0, 1.5, 2.0, 2.5, 3.0, 4.0),
+        contrast=0.2,
+        blur_px=0.5,
+    )
+    report = run_survey(scene, tmp_path / "survey", scene.options(round(scene.photo_mm_per_px, 4)))
+    assert abs(report["crack_contrast"] - 0.2) < 0.03
+    checked = 0
+    for stage, truth in zip(report["stages"], scene.stages, strict=True):
+        low, high = stage["smallest_detectable_width_range_mm"]
+        assert 1.5 * stage["photo_mm_per_px"] < high < 3 * stage["photo_mm_per_px"]  # 2 px at 20 %
+        score = score_stage(stage, truth, max(1.0, 2 * scene.photo_mm_per_px))
+        for crack, found in zip(truth, score.found, strict=True):
+            if crack.width_mm >= high:
+                checked += 1
+                assert found > 0.8, (crack.width_mm, high, found)
+    assert checked >= 4

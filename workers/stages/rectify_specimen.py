@@ -17,6 +17,7 @@ from workers.algorithms.specimen import (
     best_fit_plane,
     compose_views,
     mesh_surface,
+    photo_footprint,
     photo_sampling,
     plane_through,
     plate_surface,
@@ -35,7 +36,8 @@ COARSE_PX = 400  # pixels along the specimen's longer side of the raster its pho
 def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
     """Write the surface (``rectified/surface.npz``) and per load stage ``rectified/stage_NN.npz``:
     (H, W, 3) BGR image and the mask its photos see, on the detection raster: ``detection_oversampling``
-    times finer than the photos' own sampling on the specimen, whatever the output ``mm_per_px``."""
+    times finer than the photos' own sampling on the specimen, whatever the output ``mm_per_px``; and the
+    photos' pixel footprint on a coarse raster (``specimen.photo_footprint``)."""
     camera = option_camera(cfg.camera, "camera")
     poses = {p["image"]: pose_from_json(p) for p in ws.load_orientation()}
     paths = {f["name"]: f["path"] for f in ws.load_inputs()}
@@ -60,7 +62,9 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         progress(s / len(cfg.stages), f"load step {s + 1}/{len(cfg.stages)}")
         views = [(_read(paths[p.image]), *poses[p.image]) for p in stage.photos]
         image, mask, density = compose_views(camera, views, surface, cfg.compose)
-        ws.save_rectified(s, image, mask)
+        # how far a photo pixel reaches across a crack at each point, for its width (measure_cracks)
+        footprint = photo_footprint(camera, [poses[p.image] for p in stage.photos], coarse)
+        ws.save_rectified(s, image, mask, (footprint, coarse.mm_per_px))
         coverage.append(round(float(mask.mean()), 4))
         # the photos' own sampling on the specimen as composed (the finest photo at each point)
         photo_mm_per_px.append(round(float(np.median(1.0 / np.sqrt(density[mask]))), 4))

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from rasterio.windows import Window
 
-from workers.algorithms.cracks import Crack, estimate_width
+from workers.algorithms.cracks import Crack, estimate_width, isotropic_sampling, smallest_detectable_width
 from workers.algorithms.specimen import Surface, raster_shape, resample_raster
 from workers.config import CrackSurveyConfig
 from workers.raster_io import open_block_writer, translate_to_cog
@@ -30,10 +30,10 @@ SPECIMEN_CRS = (
     'UNIT["millimetre",0.001],AXIS["x",EAST],AXIS["y",SOUTH]]'
 )
 OVERSAMPLING_WARNING = 2.0  # warn when the output raster is this many times finer than the photos' sampling
-# what the detector is shown to find (tests/unit/test_hairline_cracks.py): every crack at least this many
-# photo pixels wide and at least DETECTABLE_CONTRAST darker than the coating around it
-DETECTABLE_WIDTH_PHOTO_PX = 1.0
-DETECTABLE_CONTRAST = 0.3
+# the contrast the smallest detectable width is given at when the survey measured none (no crack wide enough
+# to tell its contrast), and the contrasts it is tabled at (detection.smallest_detectable_width)
+DEFAULT_CRACK_CONTRAST = 0.3
+TABLED_CONTRASTS = (0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.5)
 STATUS_BGR = {"first": (0, 200, 255), "new": (0, 0, 255), "grown": (255, 0, 255), "unchanged": (0, 200, 0)}
 CSV_FIELDS = (
     "stage",
@@ -46,6 +46,7 @@ CSV_FIELDS = (
     "width_mm",
     "width_uncertainty_mm",
     "below_photo_resolution",
+    "photo_mm_per_px",
     "orientation_deg",
     "status",
     "growth_mm",
@@ -66,6 +67,8 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     # the specimen's extents on its plane, as rectify_specimen sized its rasters
     extent = rectified.get("extent_mm") or [(n - 1) * surface.mm_per_px for n in surface.shape[::-1]]
     stages, rows, warnings = [], [], []
+    measured_contrast = (ws.load_stage_report("measure_cracks") or {}).get("crack_contrast")
+    contrast = measured_contrast or DEFAULT_CRACK_CONTRAST
     for s, stage in enumerate(cfg.stages):
         progress(s / len(cfg.stages), f"load step {s + 1}/{len(cfg.stages)}")
         measured, summary = ws.load_measured_cracks(s)
@@ -84,7 +87,7 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
                 "coverage": float(mask.mean()),
                 "photo_mm_per_px": native[s],
                 "detection_mm_per_px": surface.mm_per_px,
-                "smallest_detectable_width_mm": None if native[s] is None else native[s] * DETECTABLE_WIDTH_PHOTO_PX,
+                **detectability(native[s], ws.load_photo_footprint(s), contrast),
                 **summary,
                 "below_photo_resolution": sum(bool(c["below_photo_resolution"]) for c in cracks),
                 "rectified": ws.load_step_cog_path(s).name,
@@ -99,7 +102,9 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
         "kind": "crack_survey",
         "mm_per_px": output_mm,
         "detection_mm_per_px": surface.mm_per_px,
-        "smallest_detectable_contrast": DETECTABLE_CONTRAST,
+        # the coating's crack contrast the widths rest on (measure_cracks; null: no crack wide enough to tell)
+        "crack_contrast": measured_contrast,
+        "detectability_contrast": contrast,  # the contrast each load step's smallest detectable width is for
         "specimen": cfg.specimen.model_dump(),
         "frame": (
             "paths_mm and bbox_mm: (x, y) mm on the rectification plane, x right, y down, raster pixel "
@@ -114,6 +119,25 @@ def run(ws: JobWorkspace, cfg: CrackSurveyConfig, *, progress: ProgressFn = noop
     ws.save_report(report)
     progress(1.0, "report written")
     return {"stages": len(stages), "cracks": len(rows)}
+
+
+def detectability(
+    photo_mm: float | None, footprint: tuple[np.ndarray, float] | None, contrast: float
+) -> dict[str, Any]:
+    """A load step's smallest detectable crack width (mm; None: none is found reliably): at ``contrast`` and
+    the photos' median sampling ``photo_mm``; its range over the specimen (the photos' local sampling,
+    5th to 95th percentile over the points they see, from the ``footprint``); and at other contrasts."""
+    if photo_mm is None:
+        return {"smallest_detectable_width_mm": None}
+    local = isotropic_sampling(footprint[0]) if footprint is not None else np.zeros(0)
+    spread = np.percentile(local, [5, 95]) if len(local) else (photo_mm, photo_mm)
+    return {
+        "smallest_detectable_width_mm": smallest_detectable_width(photo_mm, contrast),
+        "smallest_detectable_width_range_mm": [smallest_detectable_width(float(m), contrast) for m in spread],
+        "detectable_width_by_contrast": [
+            {"contrast": c, "width_mm": smallest_detectable_width(photo_mm, c)} for c in TABLED_CONTRASTS
+        ],
+    }
 
 
 def _resolution_warning(label: str, native: float | None, output_mm: float) -> list[str]:
@@ -141,12 +165,14 @@ def crack_rows(
     photo_mm_per_px: float | None = None,
 ) -> list[dict[str, Any]]:
     """Every crack of stage ``s`` with its status against the stage before ("first" for the first stage), and
-    its width as the photos (sampling ``photo_mm_per_px``) resolve it."""
+    its width as the photos resolve it (their sampling across the crack, ``Crack.photo_mm_per_px``, else the
+    load step's ``photo_mm_per_px``)."""
     stage = cfg.stages[s]
     rows = []
     for k, crack in enumerate(cracks):
         match = matches[k] if matches is not None else {"status": "first", "growth_mm": None, "previous": []}
-        width = estimate_width(crack.mean_width_mm, photo_mm_per_px) if photo_mm_per_px else None
+        photo_mm = crack.photo_mm_per_px or photo_mm_per_px  # across the crack where it is, else the step's
+        width = estimate_width(crack.mean_width_mm, photo_mm) if photo_mm else None
         rows.append(
             {
                 "stage": s,
@@ -159,6 +185,7 @@ def crack_rows(
                 "width_mm": None if width is None else width.width_mm,
                 "width_uncertainty_mm": None if width is None else width.uncertainty_mm,
                 "below_photo_resolution": None if width is None else width.below_photo_resolution,
+                "photo_mm_per_px": photo_mm,
                 "orientation_deg": crack.orientation_deg,
                 "status": match["status"],
                 "growth_mm": match["growth_mm"],

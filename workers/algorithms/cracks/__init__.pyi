@@ -15,6 +15,9 @@ from .detection import (
 from .detection import (
     remove_short_components as remove_short_components,
 )
+from .detection import (
+    smallest_detectable_width as smallest_detectable_width,
+)
 from .evaluation import (
     ToleranceCounts as ToleranceCounts,
 )
@@ -109,6 +112,12 @@ from .profile import (
     fit_blurred_line as fit_blurred_line,
 )
 from .profile import (
+    isotropic_sampling as isotropic_sampling,
+)
+from .profile import (
+    line_like as line_like,
+)
+from .profile import (
     profile_widths as profile_widths,
 )
 from .profile import (
@@ -116,6 +125,9 @@ from .profile import (
 )
 from .profile import (
     resolved as resolved,
+)
+from .profile import (
+    sampling_across as sampling_across,
 )
 from .profile import (
     with_widths as with_widths,

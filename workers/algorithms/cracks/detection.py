@@ -148,6 +148,30 @@ def detect_cracks(
     return dark_enough(image, mask, min_contrast, background_px)
 
 
+# How narrow a crack the detector finds, with its default thresholds and ``min_contrast`` 0.08: every crack
+# whose contrast C (the share of the coating's brightness it takes away) and width w (photo pixels, the
+# photos' isotropic sampling) have (C - DETECTABLE_CONTRAST_FLOOR) w >= DETECTABLE_DEFICIT_PX, if C is at least
+# DETECTABLE_CONTRAST_MIN. Measured on hairline plates (tests/crack_scenes.py: 800 x 600 photos at 45
+# degrees, 0.5 px PSF, grain, uneven light; seeds 7, 13, 17, 19; cracks of 0.5-8 px): at 35 % contrast every
+# crack of 1 px was found (0.75 px: 2 of 8), at 25 % every one of 1.25 px (1 px: 2 of 8), at 20 % every one
+# of 1.25 px (1 px: 0 of 8), at 15 % every one of 2.5 px (2 px: 7 of 8), at 10 % 1 of 26 of 2.5-8 px (the
+# detector sees them; ``min_contrast`` drops them, their median darkening is under 8 %).
+DETECTABLE_DEFICIT_PX = 0.30
+DETECTABLE_CONTRAST_FLOOR = 0.05
+DETECTABLE_CONTRAST_MIN = 0.15
+
+
+def smallest_detectable_width(photo_mm_per_px: float, contrast: float) -> float | None:
+    """The narrowest crack (mm) of ``contrast`` the detector finds where the photos sample the specimen at
+    ``photo_mm_per_px`` (see ``DETECTABLE_DEFICIT_PX``); None when no width was found reliably (a contrast
+    under ``DETECTABLE_CONTRAST_MIN``)."""
+    if photo_mm_per_px <= 0:
+        raise ValueError(f"photo_mm_per_px must be positive, got {photo_mm_per_px}")
+    if contrast < DETECTABLE_CONTRAST_MIN:
+        return None
+    return DETECTABLE_DEFICIT_PX / (contrast - DETECTABLE_CONTRAST_FLOOR) * photo_mm_per_px
+
+
 def trusted_region(seen: np.ndarray, margin_px: int) -> np.ndarray:
     """(H, W) bool: seen pixels at least ``margin_px`` from the unseen part and from the specimen's edges,
     where the plate's own edge or the end of a photo would be found as a crack."""

@@ -124,12 +124,28 @@ def oriented_line_means(image: np.ndarray, length: int) -> np.ndarray:
     return np.stack([cv2.filter2D(image, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT) for k in line_kernels(length)])
 
 
-def filter_bank(gray: np.ndarray) -> np.ndarray:
+def line_mean_extremes(image: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) float32 each: the least and the greatest of :func:`oriented_line_means` over the orientations,
+    kept as they come (the (n_orientations, H, W) stack is never held)."""
+    darkest = lightest = None
+    for kernel in line_kernels(length):
+        mean = cv2.filter2D(image, cv2.CV_32F, kernel, borderType=cv2.BORDER_REFLECT)
+        if darkest is None or lightest is None:
+            darkest, lightest = mean, mean.copy()
+            continue
+        np.minimum(darkest, mean, out=darkest)
+        np.maximum(lightest, mean, out=lightest)
+    assert darkest is not None and lightest is not None  # line_kernels has at least one orientation
+    return darkest, lightest
+
+
+def filter_bank(gray: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Thin-dark-line evidence at one resolution.
 
     Parameters
     ----------
     gray : (H, W) float32 grey levels.
+    out : (H, W, 21) float32 to write into (a view of a larger feature array will do); default a new one.
 
     Returns
     -------
@@ -137,21 +153,29 @@ def filter_bank(gray: np.ndarray) -> np.ndarray:
     ``HESSIAN_SIGMAS``, gradient magnitude (sigma 1, 2.5), per line length (darkest line mean - box mean, line
     contrast across orientations), Frangi vesselness.
     """
+    out = np.empty((*gray.shape, N_BANK), np.float32) if out is None else out
     norm = normalise_illumination(gray)
-    channels = [cv2.GaussianBlur(norm, (0, 0), s) for s in (1.0, 2.0)]
+    channels = iter(range(N_BANK))
+
+    def put(channel: np.ndarray) -> None:  # each channel straight into its place: no list, no stacked copy
+        out[..., next(channels)] = channel
+
+    for s in (1.0, 2.0):
+        put(cv2.GaussianBlur(norm, (0, 0), s))
     for sigma in HESSIAN_SIGMAS:
-        channels.extend(hessian_eigenvalues(norm, sigma))
+        for eigenvalues in hessian_eigenvalues(norm, sigma):
+            put(eigenvalues)
     for sigma in (1.0, 2.5):
         smooth = cv2.GaussianBlur(norm, (0, 0), sigma)
         gx, gy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=1), cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=1)
-        channels.append(np.sqrt(gx * gx + gy * gy) * np.float32(sigma))
+        put(np.sqrt(gx * gx + gy * gy) * np.float32(sigma))
     fine = cv2.GaussianBlur(norm, (0, 0), 0.7)
     for length in LINE_LENGTHS:
-        means = oriented_line_means(fine, length)
-        darkest, lightest = means.min(axis=0), means.max(axis=0)
-        channels += [darkest - cv2.blur(fine, (length, length)), lightest - darkest]
-    channels.append(ridge_response(norm))
-    return np.stack(channels, axis=-1).astype(np.float32)
+        darkest, lightest = line_mean_extremes(fine, length)
+        put(darkest - cv2.blur(fine, (length, length)))
+        put(lightest - darkest)
+    put(ridge_response(norm))
+    return out
 
 
 def brightness_context(gray: np.ndarray) -> np.ndarray:
@@ -187,9 +211,14 @@ def pixel_features(image: np.ndarray) -> np.ndarray:
     """
     gray = to_gray(image)
     h, w = gray.shape
+    out = np.empty((h, w, 2 * N_BANK + 2), np.float32)
+    filter_bank(gray, out[..., :N_BANK])
     half = cv2.resize(gray, (max(w // 2, 1), max(h // 2, 1)), interpolation=cv2.INTER_AREA)
-    coarse = cv2.resize(filter_bank(half), (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
-    return np.concatenate([filter_bank(gray), coarse, brightness_context(gray)], axis=-1)
+    out[..., N_BANK : 2 * N_BANK] = cv2.resize(filter_bank(half), (w, h), interpolation=cv2.INTER_LINEAR).reshape(
+        h, w, -1
+    )
+    out[..., 2 * N_BANK :] = brightness_context(gray)
+    return out
 
 
 def context_features(probability: np.ndarray) -> np.ndarray:

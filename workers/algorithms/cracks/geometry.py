@@ -37,6 +37,8 @@ class Crack:
     orientation_deg: float  # principal axis of the skeleton, [0, 180), counter-clockwise from +x with y up
     endpoints_mm: np.ndarray  # (K, 2) float64 (x, y) mm, the free ends of the skeleton
     bbox_mm: tuple[float, float, float, float]  # x_min, y_min, x_max, y_max of the crack's pixel centres
+    # the photos' sampling across the crack where it is, mm per photo pixel (None: not known)
+    photo_mm_per_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -518,11 +520,10 @@ def background_px(mm_per_px: float) -> float:
     return max(2.0 / mm_per_px, 4.0)
 
 
-# below this width (photo px) a crack's profile is the photo's pixel and blur whatever its width: its width
-# rests on the coating's contrast alone (``profile.crack_widths``), and is only bounded. Rendered hairlines
-# (``tests/crack_scenes.py``, 0.5 px PSF, 30 % contrast, 45 degrees, seeds 7, 11, 13, 31) of 1.5 photo px
-# measure 1.34-1.47 px, of 2 px 1.83-2.02 px (the photo sampling the report states is ~4 % coarser than the
-# scene's nominal one)
+# below this width (photo px across the crack) a crack's profile is the photo's pixel and blur whatever its
+# width: its width rests on the coating's contrast alone (``profile.crack_widths``) and is flagged, with the
+# range it may lie in. Rendered hairlines (``tests/crack_scenes.py``, 0.5 px PSF, 30 % contrast, 45 degrees,
+# seeds 7, 11, 13, 31) of 1.5 photo px measure 1.34-1.47 px, of 2 px 1.83-2.02 px
 RESOLVED_WIDTH_PX = 1.7
 # one sigma of a resolved crack's width, photo px plus a share of the width: the profile widths of those
 # scenes' cracks of 2-4 photo px are off by 0.02-0.03 mm rms (0.05-0.07 px), up to 0.11 mm where an oblique
@@ -536,26 +537,31 @@ class WidthEstimate:
     """A crack's width as the photos can tell it."""
 
     width_mm: float
-    uncertainty_mm: float  # one sigma; for a crack below photo resolution, half its possible range
-    below_photo_resolution: bool  # the photos do not resolve its width: it lies in [0, 2 photo px]
+    # one sigma; for a crack below photo resolution, the half-width of an interval around ``width_mm`` that
+    # holds every width it may have, 0 to ``RESOLVED_WIDTH_PX`` photo pixels
+    uncertainty_mm: float
+    below_photo_resolution: bool  # the photos do not resolve its width
 
 
 def estimate_width(width_mm: float, photo_mm_per_px: float) -> WidthEstimate:
     """A crack's width (its mean width from its profile, ``measure_cracks``' stage) as the photos, of sampling
-    ``photo_mm_per_px`` on the specimen, can tell it, with an uncertainty.
+    ``photo_mm_per_px`` across the crack, can tell it, with an uncertainty.
 
-    A crack narrower than ``RESOLVED_WIDTH_PX`` photo pixels blurs into the photo's pixel and PSF: only an
-    upper bound is known, two photo pixels, and the estimate is flagged (width 1 px, uncertainty 1 px).
-    Wider cracks keep their width, with ``WIDTH_SPREAD_PX`` photo pixels plus ``WIDTH_SPREAD_SHARE`` of the
-    width as one sigma, as measured on rendered cracks.
+    A crack narrower than ``RESOLVED_WIDTH_PX`` photo pixels blurs into the photo's pixel and PSF: its width
+    is its equivalent width (its darkness deficit over the coating's crack contrast), right only as far as
+    its contrast is the coating's, so it is flagged and its uncertainty covers all it may be, 0 to
+    ``RESOLVED_WIDTH_PX`` photo pixels. Wider cracks keep their width, with ``WIDTH_SPREAD_PX`` photo pixels
+    plus ``WIDTH_SPREAD_SHARE`` of the width as one sigma, as measured on rendered cracks.
 
     Parameters
     ----------
     width_mm : measured mean width, mm.
-    photo_mm_per_px : the photos' sampling where the crack is, mm per photo pixel (> 0).
+    photo_mm_per_px : the photos' sampling across the crack where it is, mm per photo pixel (> 0).
     """
     if photo_mm_per_px <= 0:
         raise ValueError(f"photo_mm_per_px must be positive, got {photo_mm_per_px}")
-    if width_mm < RESOLVED_WIDTH_PX * photo_mm_per_px:
-        return WidthEstimate(photo_mm_per_px, photo_mm_per_px, True)
+    limit = RESOLVED_WIDTH_PX * photo_mm_per_px
+    if width_mm < limit:
+        width = max(width_mm, 0.0)
+        return WidthEstimate(width, max(width, limit - width), True)
     return WidthEstimate(width_mm, WIDTH_SPREAD_PX * photo_mm_per_px + WIDTH_SPREAD_SHARE * width_mm, False)

@@ -47,8 +47,11 @@ class PixelMLP:
         """Probability (..., ) float32 for features (..., F) float32."""
         if features.shape[-1] != self.mean.shape[0]:
             raise ValueError(f"model expects {self.mean.shape[0]} features, got {features.shape[-1]}")
-        x = (features.reshape(-1, features.shape[-1]) - self.mean) / self.scale
-        hidden = np.maximum(x @ self.w1 + self.b1, 0.0)
+        x = features.reshape(-1, features.shape[-1]) - self.mean
+        x /= self.scale  # in place: the same arithmetic as ``(f - mean) / scale``, one temporary fewer
+        hidden = x @ self.w1
+        hidden += self.b1
+        np.maximum(hidden, 0.0, out=hidden)
         z = np.clip(hidden @ self.w2 + self.b2, -30.0, 30.0)
         return (1.0 / (1.0 + np.exp(-z))).astype(np.float32).reshape(features.shape[:-1])
 
@@ -79,12 +82,14 @@ def conv2d(x: np.ndarray, weight: np.ndarray, bias: np.ndarray, dilation: int = 
     rows = padded.reshape(-1, cin)
     out = np.empty((h, w, cout), np.float32)
     out[:] = bias
+    tap = np.empty((len(rows), cout), np.float32)  # one buffer for every tap: no fresh pages to fault in
+    window = tap.reshape(padded.shape[0], padded.shape[1], cout)
     for i in range(k):
         for j in range(k):
             # each tap's product over the whole padded image, then its shifted window: the copies are of
             # Cout channels, not Cin
-            tap = (rows @ weight[i, j]).reshape(padded.shape[0], padded.shape[1], cout)
-            out += tap[i * dilation : i * dilation + h, j * dilation : j * dilation + w]
+            np.matmul(rows, weight[i, j], out=tap)
+            out += window[i * dilation : i * dilation + h, j * dilation : j * dilation + w]
     return out
 
 
@@ -141,7 +146,9 @@ class CrackNet:
             raise ValueError(f"network expects {self.mean.shape[0]} features, got {features.shape[-1]}")
         if features.shape[0] % 4 or features.shape[1] % 4:
             raise ValueError(f"network input sides must be multiples of 4, got {features.shape[:2]}")
-        full = self._conv("enc1", self._conv("enc0", (features - self.mean) / self.scale))
+        standard = features - self.mean
+        standard /= self.scale  # in place, as ``(features - mean) / scale``
+        full = self._conv("enc1", self._conv("enc0", standard))
         half = self._conv("half1", self._conv("half0", avg_pool2(full)))
         quarter = self._conv("quarter2", self._conv("quarter1", self._conv("quarter0", avg_pool2(half))))
         half = self._conv("up_half", np.concatenate([half, upsample2(quarter)], axis=-1))

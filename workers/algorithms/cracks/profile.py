@@ -15,8 +15,12 @@ loss, so neither the contrast nor the PSF has to be known beforehand.
 
 A crack narrower than that (a couple of photo pixels, or four PSF sigmas) cannot tell C from w: its profile
 is the PSF's, or where it runs along the photo's pixels a flat-topped pixel or two. Its deficit C w stays
-right, and over the contrast of the cracks that are resolved (:func:`reference_contrast`) it is the
-crack's equivalent width (:func:`crack_widths`).
+right, and over the coating's crack contrast, measured on its widest cracks (:func:`reference_contrast`),
+it is the crack's equivalent width (:func:`crack_widths`).
+
+Photo pixels are counted across each crack (:func:`sampling_across`): an oblique view's pixel reaches
+``1 / sin(elevation)`` times farther along the view than across it, so a crack running across the view is
+seen by fewer pixels across it than one running along the view.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.special import erf
 
-from workers.algorithms.cracks.geometry import Crack
+from workers.algorithms.cracks.geometry import RESOLVED_WIDTH_PX, Crack
 
 DENSE_STEP_PX = 0.25  # spacing of the points the centreline is resampled to, px
 MIN_SAMPLES = 60  # fewer pixels near a crack than this: no profile width
@@ -267,45 +271,97 @@ def profile_widths(
 
 RESOLVED_PHOTO_PX = 2.5  # a profile tells its own contrast from its width past this many photo pixels ...
 RESOLVED_BLURS = 4.0  # ... and this many of its PSF sigmas (an oblique view blurs some directions more)
+MEASURED_BLURS = 2.5  # a profile narrower than this many PSF sigmas is the PSF's, whatever the pixels
+LINE_ASPECT = 10.0  # a crack runs at least this many times as far as its profile is wide
 
 
 def resolved(fit: ProfileFit, photo_px: float) -> bool:
     """Whether the photos resolve a crack's profile: its fitted width is at least ``RESOLVED_PHOTO_PX`` photo
-    pixels (``photo_px``: one photo pixel, in raster px) and ``RESOLVED_BLURS`` PSF sigmas, with a contrast
-    a crack can have (at most 1)."""
+    pixels (``photo_px``: one photo pixel across the crack, in raster px) and ``RESOLVED_BLURS`` PSF sigmas,
+    with a contrast a crack can have (at most 1)."""
     return fit.width_px >= max(RESOLVED_PHOTO_PX * photo_px, RESOLVED_BLURS * fit.blur_px) and fit.contrast <= 1.0
 
 
-def reference_contrast(fits: Sequence[Sequence[ProfileFit | None]], photo_px: Sequence[float]) -> float | None:
-    """The median contrast of the resolved cracks (:func:`resolved`) of every image ``fits[i]`` (photo pixel
-    ``photo_px[i]`` raster px), for instance every load step of one specimen; None if there is none.
+def line_like(fit: ProfileFit | None, length_px: float, mask_width_px: float) -> bool:
+    """Whether a crack ``length_px`` long with profile ``fit`` is a line: at least ``LINE_ASPECT`` times as
+    long as its profile is wide (its width and 2.5 blur sigmas, in the same px; without a fit, a crack too
+    short to sample across, its mask's mean width ``mask_width_px``). A shorter dark mark is a blot of the
+    coating's grain, wide and faint, or a smudge far blurrier than the photo: on rendered coatings 1.3-7
+    times as long as wide, against 25 and more for cracks of 18 mm and longer."""
+    width = mask_width_px if fit is None else fit.width_px + 2.5 * fit.blur_px
+    return length_px >= LINE_ASPECT * width
+
+
+def reference_contrast(
+    fits: Sequence[Sequence[ProfileFit | None]],
+    photo_px: Sequence[Sequence[float]],
+    lengths_px: Sequence[Sequence[float]],
+) -> float | None:
+    """The coating's crack contrast: the length-weighted median contrast of the cracks of every image
+    ``fits[i]`` (for instance every load step of one specimen) at least ``RESOLVED_WIDTH_PX`` photo pixels
+    and ``MEASURED_BLURS`` PSF sigmas wide, whose profiles tell contrast from width to some 10 % (narrower
+    ones trade contrast for width and read as faint wide lines); None if there is none.
+    ``photo_px[i][k]``: one photo pixel across crack ``k`` of image ``i``, raster px; ``lengths_px[i][k]``:
+    its length, raster px.
 
     The cracks of one coating take away about the same share of the light once wide enough to show it, and
     a ratio to the coating's own level does not change with exposure between load steps.
     """
-    if len(fits) != len(photo_px):
-        raise ValueError(f"{len(fits)} images of fits but {len(photo_px)} photo samplings")
-    found = [f.contrast for image, px in zip(fits, photo_px, strict=True) for f in image if f and resolved(f, px)]
-    return float(np.median(found)) if found else None
+    if not len(fits) == len(photo_px) == len(lengths_px):
+        raise ValueError(f"{len(fits)} images of fits but {len(photo_px)} of samplings, {len(lengths_px)} of lengths")
+    measured = [
+        (f.contrast, length)
+        for image, pxs, lengths in zip(fits, photo_px, lengths_px, strict=True)
+        for f, px, length in zip(image, pxs, lengths, strict=True)
+        if f is not None and f.width_px >= max(RESOLVED_WIDTH_PX * px, MEASURED_BLURS * f.blur_px) and f.contrast <= 1
+    ]
+    if not measured:
+        return None
+    contrast, weight = np.array(sorted(measured)).T
+    return float(contrast[np.searchsorted(np.cumsum(weight), 0.5 * weight.sum())])
 
 
-def crack_widths(fits: Sequence[ProfileFit | None], photo_px: float, contrast: float | None) -> np.ndarray:
+def crack_widths(fits: Sequence[ProfileFit | None], photo_px: Sequence[float], contrast: float | None) -> np.ndarray:
     """(K,) float64 each crack's width, px (NaN: no fit), from its profile fit.
 
-    A crack the photos resolve (:func:`resolved`, ``photo_px``: one photo pixel in raster px) keeps its own
-    fit. A narrower one's profile does not tell its contrast from its width: through the blur it takes the
-    PSF's shape, and where it runs along the photo's pixels (at a phase that stays the same for long
-    stretches) the flat top of a pixel or two; what stays right is its darkness deficit. Its width is its
-    equivalent width, that deficit over ``contrast`` (:func:`reference_contrast`). Without a contrast, the
-    own fits are all there is.
+    A crack the photos resolve (:func:`resolved`, ``photo_px[k]``: one photo pixel across crack ``k``, raster
+    px) keeps its own fit. A narrower one's profile does not tell its contrast from its width: through the
+    blur it takes the PSF's shape, and where it runs along the photo's pixels (at a phase that stays the same
+    for long stretches) the flat top of a pixel or two; what stays right is its darkness deficit. Its width
+    is its equivalent width, that deficit over ``contrast`` (:func:`reference_contrast`). Without a contrast,
+    the own fits are all there is.
     """
-    if photo_px <= 0:
-        raise ValueError(f"photo_px must be positive, got {photo_px}")
+    if len(photo_px) != len(fits):
+        raise ValueError(f"{len(fits)} fits but {len(photo_px)} photo samplings")
+    if any(px <= 0 for px in photo_px):
+        raise ValueError("photo samplings must be positive")
     widths = np.full(len(fits), np.nan)
-    for k, f in enumerate(fits):
+    for k, (f, px) in enumerate(zip(fits, photo_px, strict=True)):
         if f is not None:
-            widths[k] = f.width_px if contrast is None or resolved(f, photo_px) else f.deficit_px / contrast
+            widths[k] = f.width_px if contrast is None or resolved(f, px) else f.deficit_px / contrast
     return widths
+
+
+def sampling_across(paths_mm: Sequence[np.ndarray], footprint: np.ndarray, footprint_mm_per_px: float) -> float | None:
+    """The photos' sampling across a crack, mm per photo pixel: the median over its centreline of
+    ``sqrt(n^T F n)``, ``n`` the centreline's unit normal and ``F`` the photo pixel's footprint there
+    (``specimen.photo_footprint``, (h, w, 3) on a raster of ``footprint_mm_per_px``, nearest node). None
+    where no photo sees the crack."""
+    values = []
+    for path in paths_mm:
+        if len(path) < 2:
+            continue
+        tangent = np.gradient(ndi.gaussian_filter1d(np.asarray(path, np.float64), 2.0, axis=0, mode="nearest"), axis=0)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+        cells = np.rint(path / footprint_mm_per_px).astype(int)
+        cols = np.clip(cells[:, 0], 0, footprint.shape[1] - 1)
+        rows = np.clip(cells[:, 1], 0, footprint.shape[0] - 1)
+        fxx, fxy, fyy = (footprint[rows, cols, i].astype(np.float64) for i in range(3))
+        nx, ny = -tangent[:, 1], tangent[:, 0]
+        across = nx * nx * fxx + 2 * nx * ny * fxy + ny * ny * fyy
+        values.append(np.sqrt(across[fxx > 0]))
+    joined = np.concatenate(values) if values else np.zeros(0)
+    return float(np.median(joined)) if len(joined) else None
 
 
 def with_widths(cracks: Sequence[Crack], widths_mm: np.ndarray) -> list[Crack]:
@@ -320,3 +376,11 @@ def with_widths(cracks: Sequence[Crack], widths_mm: np.ndarray) -> list[Crack]:
             replace(crack, mean_width_mm=float(width), max_width_mm=max(float(width), crack.max_width_mm * ratio))
         )
     return out
+
+
+def isotropic_sampling(footprint: np.ndarray) -> np.ndarray:
+    """(M,) float64 the photos' isotropic sampling, mm per photo pixel (``det(F) ** 0.25``), at every point of a
+    ``specimen.photo_footprint`` (h, w, 3) that a photo sees."""
+    fxx, fxy, fyy = (footprint[..., i].astype(np.float64) for i in range(3))
+    seen = fxx > 0
+    return (np.maximum(fxx * fyy - fxy * fxy, 0.0)[seen]) ** 0.25

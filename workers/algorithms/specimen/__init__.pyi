@@ -46,6 +46,9 @@ from .surface import (
     mesh_surface as mesh_surface,
 )
 from .surface import (
+    photo_footprint as photo_footprint,
+)
+from .surface import (
     photo_sampling as photo_sampling,
 )
 from .surface import (

@@ -430,6 +430,50 @@ def photo_sampling(camera: Camera, poses: list[tuple[np.ndarray, np.ndarray]], s
     return float(np.median(1.0 / np.sqrt(best[seen]))) if seen.any() else math.nan
 
 
+def photo_footprint(camera: Camera, poses: list[tuple[np.ndarray, np.ndarray]], surface: Surface) -> np.ndarray:
+    """Each point's photo pixel on the specimen, as the (2, 2) matrix ``F = J^-1 J^-T`` (mm^2), ``J`` the
+    Jacobian of photo pixel (u, v) by plane position (x, y) mm, of the photo that samples it most finely
+    (as :func:`photo_sampling`).
+
+    ``sqrt(n^T F n)`` is the photo pixel's extent across a line of unit normal ``n`` (mm per photo pixel across
+    it: the spread of the pixel's footprint and of an isotropic photo PSF along ``n`` scale by it), and
+    ``det(F) ** 0.25`` the isotropic sampling of :func:`photo_sampling`. An oblique view's pixel reaches
+    ``1 / sin(elevation)`` times farther along the view than across it, so the same crack can be two photo
+    pixels wide across the view and one along it.
+
+    Parameters
+    ----------
+    camera, poses : as :func:`photo_sampling`.
+    surface : the raster to evaluate on; a coarse one (a few hundred pixels across) is enough.
+
+    Returns
+    -------
+    (H, W, 3) float32 ``(F_xx, F_xy, F_yy)``; zeros where no photo sees the point.
+    """
+    best = np.zeros(surface.shape, np.float32)
+    out = np.zeros((*surface.shape, 3), np.float32)
+    points = surface.points().reshape(-1, 3)
+    axes = surface.frame.axes
+    if surface.flat:
+        along = np.broadcast_to(axes[:2].T, (len(points), 3, 2))  # d model point / d (x, y)
+    else:  # the surface climbs its slopes along the plane's normal
+        dx, dy = (slope.reshape(-1, 1) for slope in surface._slopes)
+        along = np.stack([axes[0] + dx * axes[2], axes[1] + dy * axes[2]], axis=-1)
+    for R, C in poses:
+        depth = photo_depth(surface.mesh, camera, R, C) if surface.mesh is not None else None
+        _, _, density = rectification_maps(camera, R, C, surface, slice(None), depth)
+        better = (density > best).ravel()
+        if not better.any():
+            continue
+        cam = world_to_camera(points[better], R, C)
+        J = camera.project_jacobian(cam) @ R @ along[better]  # (M, 2, 2) photo px per mm
+        inverse = np.linalg.inv(J)
+        F = inverse @ inverse.transpose(0, 2, 1)
+        out.reshape(-1, 3)[better] = np.column_stack([F[:, 0, 0], F[:, 0, 1], F[:, 1, 1]])
+        np.maximum(best, density, out=best)
+    return out
+
+
 def resample_raster(
     image: np.ndarray, mask: np.ndarray, mm_per_px: float, shape: tuple[int, int], out_mm_per_px: float
 ) -> tuple[np.ndarray, np.ndarray]:
