@@ -102,7 +102,7 @@ class Image(Base):
     seq: Mapped[int] = mapped_column(Integer)  # upload order within the flight, from 1
     filename: Mapped[str] = mapped_column(String(255))  # as the client named it, for display only
     stored_name: Mapped[str] = mapped_column(String(64))  # chosen by the server, inside the flight folder
-    size_bytes: Mapped[int] = mapped_column(Integer)
+    size_bytes: Mapped[int] = mapped_column(BigInteger)  # a strip frame may be over 2 GiB
     width: Mapped[int] = mapped_column(Integer)
     height: Mapped[int] = mapped_column(Integer)
     meta: Mapped[dict[str, Any]] = mapped_column(default=dict)  # GPS, focal length, attitude (EXIF/XMP)
@@ -214,6 +214,7 @@ class Database:
         _add_missing_columns(self.engine)
         _allow_jobs_without_flight(self.engine)
         _never_reuse_ids(self.engine)
+        _widen_byte_counts(self.engine)
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -299,6 +300,18 @@ def _allow_jobs_without_flight(engine: Engine) -> None:
             conn.execute(text("ALTER TABLE jobs ALTER COLUMN flight_id DROP NOT NULL"))
             return
         _rebuild(conn, Base.metadata.tables["jobs"])
+
+
+def _widen_byte_counts(engine: Engine) -> None:
+    """Upgrade a PostgreSQL database made when ``images.size_bytes`` was a 32-bit INTEGER (a 2 GiB frame
+    overflowed it). SQLite's INTEGER is 64-bit already."""
+    if engine.dialect.name == "sqlite":
+        return
+    column = next(c for c in inspect(engine).get_columns("images") if c["name"] == "size_bytes")
+    if isinstance(column["type"], BigInteger):
+        return
+    with engine.begin() as conn:
+        conn.execute(text("ALTER TABLE images ALTER COLUMN size_bytes TYPE BIGINT"))
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

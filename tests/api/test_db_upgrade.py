@@ -108,3 +108,37 @@ def test_database_from_before_accounts_gets_the_new_columns_and_keeps_its_rows(a
         assert new.id != 3
         assert len(s.get(Flight, 7).images) == 1
     Database(url)  # a second start finds nothing to upgrade
+
+
+def test_database_with_32_bit_image_sizes_takes_frames_over_2_gib(api_settings) -> None:
+    from sqlalchemy import Integer
+
+    url = api_settings.resolved_database_url()
+    api_settings.data_dir.mkdir(parents=True, exist_ok=True)
+    old = MetaData()
+    for table in Base.metadata.sorted_tables:
+        table.to_metadata(old)
+    old.tables["images"].c.size_bytes.type = Integer()  # the schema before strip frames
+    engine = create_engine(url)
+    old.create_all(engine)
+    with engine.begin() as conn:
+        flight_id = conn.execute(
+            old.tables["flights"].insert().values(name="route", description="", created_at=utcnow())
+        ).inserted_primary_key[0]
+        conn.execute(
+            old.tables["images"]
+            .insert()
+            .values(flight_id=flight_id, seq=1, filename="a.tif", stored_name="a.tif", size_bytes=5, width=1, height=1)
+        )
+    engine.dispose()
+
+    db = Database(url)
+    big = 3 * 2**30 + 17  # a 135 MP strip frame in a BigTIFF can be this big
+    with db.session() as s:
+        s.add(
+            Image(flight_id=flight_id, seq=2, filename="b.tif", stored_name="b.tif", size_bytes=big, width=1, height=1)
+        )
+    with db.session() as s:
+        sizes = sorted(image.size_bytes for image in s.scalars(select(Image)))
+    assert sizes == [5, big]
+    Database(url)  # a second start finds nothing to upgrade
