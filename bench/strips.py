@@ -28,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run as a script from a checkout, installed or not
 
-DEFAULT_OPTIONS = {"feature_type": "harris_ncc", "output_resolution": "native", "working_max_px": 20000}
+DEFAULT_OPTIONS = {"mode": "strip"}  # native output, tie points coarse to fine
 
 
 def peak_rss_mib() -> float:

@@ -57,7 +57,7 @@ PIPELINES: dict[str, tuple[StageSpec, ...]] = {
     ),
     f"{JobKind.mosaic}.strip": (
         StageSpec("load_images", 15, parted=True),
-        StageSpec("match_strips", 35),
+        StageSpec("match_strips", 35, parted=True, gpu=True),
         StageSpec("align_frames", 5),
         StageSpec("georeference", 2),
         StageSpec("compose_mosaic", 40, parted=True),

@@ -4,12 +4,15 @@
 Each candidate pair is registered on a pyramid built from the frames' working copies (a 1/``strip_reduction``
 copy: the frames are decoded once, by ``load_images``), with the spread criterion choosing the level; its
 tie points are then found at native resolution in windows read from the source frames, and given to the
-planar adjustment in working-copy pixels (as floats: they keep their native precision).
+planar adjustment in working-copy pixels (as floats: they keep their native precision). A part per pair, so a
+route's pairs spread over every worker (``workers.pipeline``'s parted stages).
 """
 
 from __future__ import annotations
 
 import math
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -25,7 +28,7 @@ from workers.algorithms.strips import (
     register_coarse,
 )
 from workers.config import MosaicConfig
-from workers.parallel import ordered_map, thread_count
+from workers.parallel import RecentCache, thread_count
 from workers.photo_io import WindowReader
 from workers.records import Frame, PairRecord
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -33,48 +36,70 @@ from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 GREEN = 1  # the channel the strip method runs on (BGR index)
 
 
-def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_progress) -> dict[str, Any]:
-    """Write ``matches/pair_I_J.npz`` (tie points, working px) and ``pairs.json`` (every pair tried)."""
+PART_UNIT = "pair"  # what a part is, in the progress
+# by (job folder, frame): the pyramids and window readers of the frames this process's pairs share
+_PYRAMIDS: RecentCache[FramePyramid] = RecentCache(32)
+_READERS: RecentCache[WindowReader] = RecentCache(32)
+
+
+def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
+    """A part per candidate pair: flight order, plus GPS neighbours when every frame has a fix."""
     frames = ws.load_frames()
-    by_index = {f.index: f for f in frames}
     with_gps = all(f.gps for f in frames)
     positions = local_metres(np.array([[f.gps["lat"], f.gps["lon"]] for f in frames if f.gps])) if with_gps else None
     pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
+    return [f"{frames[a].index:05d}_{frames[b].index:05d}" for a, b in pairs]
+
+
+def part_threads(cfg: MosaicConfig) -> int:
+    return 1 if resolve_device(cfg.device) == "cuda" else thread_count(cfg.threads)
+
+
+def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
+    """Tie points of pair ``key``: ``matches/pair_I_J.npz`` when it is accepted; the record is its
+    ``PairRecord`` and what the coarse registration chose."""
+    i, j = (int(k) for k in key.split("_"))
+    by_index = {f.index: f for f in ws.load_frames()}
+    fa, fb = by_index[i], by_index[j]
     device = resolve_device(cfg.device)
-    threads = 1 if device == "cuda" else thread_count(cfg.threads)
-    progress(0.0, "pyramids")
-    pyramids = {f.index: _pyramid(ws, f) for f in frames}
-    readers = {f.index: WindowReader(f.path) for f in frames}
-    details: dict[str, dict[str, Any]] = {}
+    folder = str(Path(ws.root).resolve())
+    pyramid_a, pyramid_b = (_PYRAMIDS.get((folder, f.index), partial(_pyramid, ws, f)) for f in (fa, fb))
+    coarse = register_coarse(pyramid_a, pyramid_b, min_spread=cfg.strip_min_spread, device=device)
+    detail: dict[str, Any] = {"level": coarse.level, "spread": round(coarse.spread, 3), "note": coarse.reason}
+    if coarse.homography is None:
+        return {"pair": PairRecord(i, j, 0, 0, False, "H", None).to_json(), "detail": detail}
+    reader_a, reader_b = (_READERS.get(f.path, partial(WindowReader, f.path)) for f in (fa, fb))
+    ties = fine_tie_points(
+        reader_a, reader_b, coarse.homography, n_points=cfg.strip_tie_points, frames=(i, j), device=device
+    )
+    n = len(ties.points_a)
+    detail["tie_points"] = n
+    H = _to_working(fb) @ coarse.homography @ np.linalg.inv(_to_working(fa))
+    peaks = int(ties.counts.get("peaks", n))
+    if n < cfg.min_inliers:
+        return {"pair": PairRecord(i, j, peaks, n, False, "H", H / H[2, 2]).to_json(), "detail": detail}
+    ws.save_matches((i, j), _working_points(fa, ties.points_a), _working_points(fb, ties.points_b))
+    record = PairRecord(i, j, peaks, n, True, "H", H / H[2, 2], tie_points=n)
+    return {"pair": record.to_json(), "detail": detail}
 
-    def one(pair: tuple[int, int]) -> PairRecord:
-        i, j = pair
-        fa, fb = by_index[i], by_index[j]
-        coarse = register_coarse(pyramids[i], pyramids[j], min_spread=cfg.strip_min_spread, device=device)
-        key = f"{fa.name}|{fb.name}"
-        details[key] = {"level": coarse.level, "spread": round(coarse.spread, 3), "note": coarse.reason}
-        if coarse.homography is None:
-            return PairRecord(i, j, 0, 0, False, "H", None)
-        ties = fine_tie_points(
-            readers[i], readers[j], coarse.homography, n_points=cfg.strip_tie_points, frames=pair, device=device
-        )
-        n = len(ties.points_a)
-        details[key]["tie_points"] = n
-        H = _to_working(fb) @ coarse.homography @ np.linalg.inv(_to_working(fa))
-        if n < cfg.min_inliers:
-            return PairRecord(i, j, int(ties.counts.get("peaks", n)), n, False, "H", H / H[2, 2])
-        points_i = _working_points(fa, ties.points_a)
-        points_j = _working_points(fb, ties.points_b)
-        ws.save_matches(pair, points_i, points_j)
-        return PairRecord(i, j, int(ties.counts.get("peaks", n)), n, True, "H", H / H[2, 2], tie_points=n)
 
-    results = ordered_map(one, pairs, threads, progress, "pair")
+def finish(
+    ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
+) -> dict[str, Any]:
+    """Write ``pairs.json``: every pair tried, in the plan's order."""
+    results = [PairRecord.from_json(r["pair"]) for r in records.values()]
     ws.save_pairs(results)
+    frames = ws.load_frames()
+    names = {f.index: f.name for f in frames}
+    details = {
+        f"{names[r.pair[0]]}|{names[r.pair[1]]}": rec["detail"]
+        for r, rec in zip(results, records.values(), strict=True)
+    }
     return {
         "pairs_tried": len(results),
         "pairs_accepted": sum(r.accepted for r in results),
-        "selection": "gps+order" if with_gps else "order",
-        "device": device,
+        "selection": "gps+order" if all(f.gps for f in frames) else "order",
+        "device": resolve_device(cfg.device),
         "pairs": details,
     }
 
