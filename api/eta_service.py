@@ -85,11 +85,18 @@ def history(db: Database, kind: str, pipeline: str, now: float) -> Samples:
 
 
 def job_size(work: dict[str, Any]) -> dict[str, float]:
-    """What a job's record says of its size: input frames and, when known, working megapixels."""
+    """What a job's record says of its size: input frames and, when known, working megapixels and the pairs of
+    photos matching counts (from its start)."""
     size = {"frames": float(work.get("frames") or 1)}
     for key in ("megapixels", "photo_megapixels"):
         if isinstance(work.get(key), int | float):
             size[key] = float(work[key])
+    matching = (work.get("stages") or {}).get("match_features") or {}
+    current = work.get("current") or {}
+    if current.get("stage") == "match_features" and not matching:
+        matching = {"unit": current.get("unit"), "count": current.get("total")}
+    if matching.get("unit") == "pair" and isinstance(matching.get("count"), int) and matching["count"] > 0:
+        size["pairs"] = float(matching["count"])
     return size
 
 

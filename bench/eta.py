@@ -84,6 +84,13 @@ def stage_spans(run: dict[str, Any]) -> list[tuple[str, float, float]]:
     return out
 
 
+def size_at(run: dict[str, Any], t: float = float("inf")) -> dict[str, float]:
+    """The run's size as its job record tells it at ``t``: frames and megapixels, and the pairs matching counts
+    once it has counted them (as ``api.eta_service.job_size`` reads them)."""
+    counts = [c.total for when, stage, _, c in run["events"] if stage == "match_features" and c and when <= t]
+    return {**run["size"], "pairs": float(counts[0])} if counts else dict(run["size"])
+
+
 def stage_seconds(run: dict[str, Any]) -> dict[str, float]:
     """Each stage's seconds as a worker records them in the job's timings (write_report's too, which the
     pipeline's report cannot hold: it is written before its own seconds are)."""
@@ -109,7 +116,7 @@ def replay(
         name = current[0] if current else None
         rates = DEFAULT_RATES.get(run["pipeline"]) if defaults else None
         elapsed = t - current[1] if current else 0.0
-        eta = estimate(stages, run["size"], finished, name, fraction, elapsed, history, count, rates)
+        eta = estimate(stages, size_at(run, t), finished, name, fraction, elapsed, history, count, rates)
         progress = overall_progress(run["pipeline"], name, fraction) if name else 0.0
         bar = t * (100 - progress) / progress if progress > 0 else None
         out.append((t, None if eta is None else eta.seconds_left, bar))
@@ -184,7 +191,7 @@ def main() -> None:
     done: list[dict[str, Any]] = []
     results = []
     for name, run in recorded:
-        similar = similar_jobs([(r["size"], stage_seconds(r)) for r in done], run["size"])  # as the API picks them
+        similar = similar_jobs([(size_at(r), stage_seconds(r)) for r in done], run["size"])  # as the API picks them
         history = seconds_per_unit(similar, DEFAULT_RATES.get(run["pipeline"])) or None
         series = replay(run, history)
         row = {

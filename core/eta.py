@@ -34,25 +34,30 @@ PHOTO_PIXEL_STAGES = frozenset({"load_images", "orient_camera"})
 PIXEL_STAGES = frozenset(
     {"compose_mosaic", "orthorectify_frames", "rectify_specimen", "detect_cracks", "write_crack_report"}
 )
+# ... or the pairs of photos matched (a grid has 3.7-4.1 of them per photo, a strip 2.5: per photo, the grids'
+# matching cost 2.3x the strip's, per pair 1.6x), known once matching has planned them; until then
+# PAIRS_PER_PHOTO of them per photo (the median of bench/eta.py's runs)
+PAIR_STAGES = frozenset({"match_features", "measure_ties"})
+PAIRS_PER_PHOTO = 3.7
 # Seconds per unit of work (``work_unit``) of each stage on the reference machine (2 cores, wall seconds with
 # other work on the machine): what a service with no history of its own starts from, its pace then measured on
-# the job itself. Planar: the median of 9 runs of bench/eta.py (three times each the Brighton strip, 6 DJI
+# the job itself. Planar: the median of 12 runs of bench/eta.py (four times each the Brighton strip, 6 DJI
 # photos of 9 MP at 2048 px, and 12- and 24-frame synthetic grids at 640 and 800 px); ortho: the Brighton strip
 DEFAULT_RATES: dict[str, dict[str, float]] = {
     "mosaic": {
-        "load_images": 0.024,
-        "detect_features": 0.057,
-        "match_features": 0.14,
-        "measure_ties": 0.105,
-        "align_frames": 0.039,
+        "load_images": 0.025,
+        "detect_features": 0.074,
+        "match_features": 0.039,
+        "measure_ties": 0.030,
+        "align_frames": 0.040,
         "georeference": 0.0006,
-        "compose_mosaic": 0.33,
-        "write_report": 0.0096,
+        "compose_mosaic": 0.35,
+        "write_report": 0.0095,
     },
     "mosaic.ortho": {
         "load_images": 0.024,
         "detect_features": 2.1,
-        "match_features": 0.62,
+        "match_features": 0.25,  # 0.62 s per photo, 15 pairs of 6 photos
         "adjust_bundle": 0.86,
         "orthorectify_frames": 1.14,
         "compose_mosaic": 0.55,
@@ -180,14 +185,19 @@ def _running(expected: float, fraction: float, elapsed: float) -> float:
 
 def work_unit(stage: str) -> str:
     """What a stage's time is counted per: ``photo_megapixels`` (the inputs' own pixels), ``megapixels`` (their
-    working pixels) or ``frames``."""
+    working pixels), ``pairs`` (of photos matched) or ``frames``."""
     if stage in PHOTO_PIXEL_STAGES:
         return "photo_megapixels"
+    if stage in PAIR_STAGES:
+        return "pairs"
     return "megapixels" if stage in PIXEL_STAGES else "frames"
 
 
 def _amount(stage: str, size: Mapping[str, float]) -> float | None:
-    value = size.get(work_unit(stage))
+    unit = work_unit(stage)
+    value = size.get(unit)
+    if unit == "pairs" and not (isinstance(value, int | float) and value > 0):
+        value = PAIRS_PER_PHOTO * size["frames"] if isinstance(size.get("frames"), int | float) else None
     return float(value) if isinstance(value, int | float) and value > 0 else None
 
 

@@ -72,7 +72,10 @@ def test_the_worker_records_the_work_and_the_api_estimates_from_it(
     )
     eta = client.get(f"/api/jobs/{second.json()['id']}").json()["eta"]
     size = job_size(record(api_settings, second.json()["id"]).work)
-    rates = seconds_per_unit([(size, done["timings"])], DEFAULT_RATES["mosaic"])
+    first = job_size(record(api_settings, job["id"]).work)
+    assert first["pairs"] == record(api_settings, job["id"]).work["stages"]["match_features"]["count"]
+    assert "pairs" not in size  # not matched yet: its pairs are guessed from its photos
+    rates = seconds_per_unit([(first, done["timings"])], DEFAULT_RATES["mosaic"])
     defaults = DEFAULT_RATES["mosaic"]
     assert rates["compose_mosaic"] == pytest.approx(
         (done["timings"]["compose_mosaic"] / size["megapixels"] + defaults["compose_mosaic"]) / 2
