@@ -22,6 +22,11 @@ from workers.algorithms.calibration import MIN_VIEWS
 from workers.workspace import job_workspace
 
 MIN_MARKS = 6  # marked points per image: a pose has six unknowns
+# the stages that solve again over new marks (the corners found stay)
+SOLVE_STAGES = {
+    JobKind.calibration: ("calibrate_camera", "fit_plumb_line"),
+    JobKind.stereo_calibration: ("calibrate_stereo",),
+}
 
 
 async def create_calibration(
@@ -146,19 +151,28 @@ def calibration_photos(db: Database, settings: Settings, job_id: int, kind: JobK
     return {"pattern": found.get("pattern", config.get("pattern")), "photos": photos}
 
 
-def replace_markers(db: Database, settings: Settings, queue: JobQueue, job_id: int, body: MarksUpdate) -> JobOut:
-    """Replace (or remove) the marks of some photos and solve again; the corner detection is kept."""
-    job = job_of_kind(db, job_id, (JobKind.calibration,), "calibration")
+def replace_markers(
+    db: Database,
+    settings: Settings,
+    queue: JobQueue,
+    job_id: int,
+    body: MarksUpdate,
+    kind: JobKind = JobKind.calibration,
+) -> JobOut:
+    """Replace (or remove) the marks of some photos of a calibration or stereo rig and solve again; the corner
+    detection is kept."""
+    noun = "stereo rig" if kind == JobKind.stereo_calibration else "calibration"
+    job = job_of_kind(db, job_id, (kind,), noun)
     if not JobStatus(job.status).finished:
-        raise ConflictError(f"calibration {job_id} is {job.status}; change its marks once it has finished")
+        raise ConflictError(f"{noun} {job_id} is {job.status}; change its marks once it has finished")
     ws = job_workspace(settings.data_dir, job_id)
     config = ws.load_config()
     marks = [m.model_dump() for m in body.markers]
     _check_marks(marks, {f["name"] for f in ws.load_inputs()})
-    merged = {m["image"]: m for m in config["markers"]} | {m["image"]: m for m in marks}
-    config = validated_config(JobKind.calibration, {**config, "markers": list(merged.values())})
+    merged = {m["image"]: m for m in config.get("markers", [])} | {m["image"]: m for m in marks}
+    config = validated_config(kind, {**config, "markers": list(merged.values())})
     ws.save_config(config)
-    for stage in ("calibrate_camera", "fit_plumb_line"):
+    for stage in SOLVE_STAGES[kind]:
         ws.forget_stage_report(stage)
     with db.session() as s:
         record = job_or_404(s, job_id)

@@ -4,17 +4,21 @@ the job record carries), on the same timelines.
 
 Run by hand from the repository root::
 
-    .venv/bin/python bench/eta.py [--json OUT]
+    .venv/bin/python bench/eta.py [--json OUT] [--save-traces runs.json | --traces runs.json]
+
+``--save-traces`` keeps the recorded runs; ``--traces`` replays such a file without running the pipeline (to
+compare estimators on the same timelines).
 
 Three runs, one after the other in this process, each recording every progress report a worker would write
 (stage, share done, detail, time): a synthetic 12-frame GPS flight at 640 px, a 24-frame one at 800 px, and
 the real Brighton strip (6 DJI frames) at 2048 px when ``../shared/data`` has it. Then each timeline is
 replayed every 0.2 s as the API computes at a read: the running stage's start and last reported share and
-count, the finished stages' seconds, and the history of the runs before it (seconds of each
+count, the finished stages' seconds, and the history of the runs before it of a similar size (seconds of each
 stage per input frame or working megapixel, as ``api.eta_service`` reads it from earlier jobs); the first run
-has none. Printed per run: the error
-of the predicted time left against the true one, as a share of the whole job, at 25, 50 and 75 % of the run
-and its worst from 25 % on (the goal: within 20 %), for ours and for the progress-bar reference.
+has none, and the Brighton strip none of the synthetic flights (4-5x their working megapixels per photo).
+Printed per run: the error of the predicted time left against the true one, as a share of the whole job, at
+25, 50 and 75 % of the run and its worst from 25 % on (the goal: within 20 %), for ours and for the
+progress-bar reference.
 """
 
 from __future__ import annotations
@@ -80,6 +84,19 @@ def stage_spans(run: dict[str, Any]) -> list[tuple[str, float, float]]:
     return out
 
 
+def size_at(run: dict[str, Any], t: float = float("inf")) -> dict[str, float]:
+    """The run's size as its job record tells it at ``t``: frames and megapixels, and the pairs matching counts
+    once it has counted them (as ``api.eta_service.job_size`` reads them)."""
+    counts = [c.total for when, stage, _, c in run["events"] if stage == "match_features" and c and when <= t]
+    return {**run["size"], "pairs": float(counts[0])} if counts else dict(run["size"])
+
+
+def stage_seconds(run: dict[str, Any]) -> dict[str, float]:
+    """Each stage's seconds as a worker records them in the job's timings (write_report's too, which the
+    pipeline's report cannot hold: it is written before its own seconds are)."""
+    return {name: end - start for name, start, end in stage_spans(run)}
+
+
 def replay(
     run: dict[str, Any], history: dict[str, float] | None, defaults: bool = True
 ) -> list[tuple[float, float | None, float | None]]:
@@ -99,7 +116,7 @@ def replay(
         name = current[0] if current else None
         rates = DEFAULT_RATES.get(run["pipeline"]) if defaults else None
         elapsed = t - current[1] if current else 0.0
-        eta = estimate(stages, run["size"], finished, name, fraction, elapsed, history, count, rates)
+        eta = estimate(stages, size_at(run, t), finished, name, fraction, elapsed, history, count, rates)
         progress = overall_progress(run["pipeline"], name, fraction) if name else 0.0
         bar = t * (100 - progress) / progress if progress > 0 else None
         out.append((t, None if eta is None else eta.seconds_left, bar))
@@ -123,14 +140,28 @@ def errors(run: dict[str, Any], series: list[tuple[float, float | None, float | 
     return {**at, "worst_after_25%": worst}
 
 
-def main() -> None:
-    from core.eta import seconds_per_unit
+def trace_json(name: str, run: dict[str, Any]) -> dict[str, Any]:
+    """A recorded run as JSON (a progress count as [unit, done, total]): what ``--traces`` reads back."""
+    events = [
+        [t, stage, fraction, None if c is None else [c.unit, c.done, c.total]]
+        for t, stage, fraction, c in run["events"]
+    ]
+    return {"name": name, **run, "events": events}
+
+
+def trace_run(trace: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """``trace_json``'s run again."""
+    from core.eta import UnitCount
+
+    events = [(t, stage, fraction, None if c is None else UnitCount(*c)) for t, stage, fraction, c in trace["events"]]
+    run = {k: v for k, v in trace.items() if k != "name"}
+    return trace["name"], {**run, "events": events}
+
+
+def recorded_runs(tmp: Path, save: Path | None) -> list[tuple[str, dict[str, Any]]]:
+    """The three runs, each recorded as it ran (written to ``save`` as JSON traces when given)."""
     from tests.scenes import make_flight
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--json", type=Path, help="write the figures here too")
-    args = parser.parse_args()
-    tmp = Path(tempfile.mkdtemp(prefix="bench-eta-"))
     runs: list[tuple[str, Path, dict[str, Any]]] = []
     make_flight(tmp / "s12", n_frames=12, frame_size=(640, 480), layout="grid", seed=11)
     runs.append(("synthetic 12 frames, 640 px", tmp / "s12", {"working_max_px": 640}))
@@ -139,20 +170,38 @@ def main() -> None:
     brighton = ROOT.parent / "shared" / "data" / "drone_brighton_strip1"
     if brighton.is_dir():
         runs.append(("Brighton strip, 6 frames, 2048 px", brighton, {"working_max_px": 2048}))
+    out = [(name, record_run(src, tmp / f"job{k}", options)) for k, (name, src, options) in enumerate(runs)]
+    if save is not None:
+        save.write_text(json.dumps([trace_json(name, run) for name, run in out]))
+    return out
+
+
+def main() -> None:
+    from core.eta import DEFAULT_RATES, seconds_per_unit, similar_jobs
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--json", type=Path, help="write the figures here too")
+    parser.add_argument("--save-traces", type=Path, help="write the recorded runs here (JSON)")
+    parser.add_argument("--traces", type=Path, help="replay runs recorded by --save-traces instead of running")
+    args = parser.parse_args()
+    if args.traces:
+        recorded = [trace_run(t) for t in json.loads(args.traces.read_text())]
+    else:
+        recorded = recorded_runs(Path(tempfile.mkdtemp(prefix="bench-eta-")), args.save_traces)
     done: list[dict[str, Any]] = []
     results = []
-    for name, src, options in runs:
-        run = record_run(src, tmp / f"job{len(done)}", options)
-        history = seconds_per_unit([(r["size"], r["stage_seconds"]) for r in done]) or None
+    for name, run in recorded:
+        similar = similar_jobs([(size_at(r), stage_seconds(r)) for r in done], run["size"])  # as the API picks them
+        history = seconds_per_unit(similar, DEFAULT_RATES.get(run["pipeline"])) or None
         series = replay(run, history)
         row = {
             "run": name,
             "seconds": round(run["total"], 2),
-            "history_jobs": len(done),
+            "history_jobs": len(similar),
             "ours": errors(run, series, 1),
             "progress_bar": errors(run, series, 2),
         }
-        if history is not None:  # the same run as a first job on a service would see it
+        if done:  # the same run as a first job on a service would see it
             row["ours_without_history"] = errors(run, replay(run, None), 1)
         row["ours_weights_only"] = errors(run, replay(run, None, defaults=False), 1)  # no rates at all
         results.append(row)

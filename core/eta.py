@@ -20,6 +20,7 @@ Nothing here reads a clock or a database: callers pass the elapsed seconds and t
 from __future__ import annotations
 
 import re
+import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,25 +34,30 @@ PHOTO_PIXEL_STAGES = frozenset({"load_images", "orient_camera"})
 PIXEL_STAGES = frozenset(
     {"compose_mosaic", "orthorectify_frames", "rectify_specimen", "detect_cracks", "write_crack_report"}
 )
-# Seconds per unit of work (``work_unit``) of each stage on the reference machine (2 cores, the real Brighton
-# strip: 6 DJI photos of 9 MP at 2048 px, planar (ORB, guided tie points) and ortho, wall seconds with other work
-# on the machine; bench/eta.py): what a service with no history of
-# its own starts from, its pace then measured on the job itself
+# ... or the pairs of photos matched (a grid has 3.7-4.1 of them per photo, a strip 2.5: per photo, the grids'
+# matching cost 2.3x the strip's, per pair 1.6x), known once matching has planned them; until then
+# PAIRS_PER_PHOTO of them per photo (the median of bench/eta.py's runs)
+PAIR_STAGES = frozenset({"match_features", "measure_ties"})
+PAIRS_PER_PHOTO = 3.7
+# Seconds per unit of work (``work_unit``) of each stage on the reference machine (2 cores, wall seconds with
+# other work on the machine): what a service with no history of its own starts from, its pace then measured on
+# the job itself. Planar: the median of 12 runs of bench/eta.py (four times each the Brighton strip, 6 DJI
+# photos of 9 MP at 2048 px, and 12- and 24-frame synthetic grids at 640 and 800 px); ortho: the Brighton strip
 DEFAULT_RATES: dict[str, dict[str, float]] = {
     "mosaic": {
-        "load_images": 0.026,
-        "detect_features": 0.048,
-        "match_features": 0.063,
-        "measure_ties": 0.10,
-        "align_frames": 0.052,
-        "georeference": 0.005,
+        "load_images": 0.025,
+        "detect_features": 0.074,
+        "match_features": 0.039,
+        "measure_ties": 0.030,
+        "align_frames": 0.040,
+        "georeference": 0.0006,
         "compose_mosaic": 0.35,
-        "write_report": 0.25,
+        "write_report": 0.0095,
     },
     "mosaic.ortho": {
         "load_images": 0.024,
         "detect_features": 2.1,
-        "match_features": 0.62,
+        "match_features": 0.25,  # 0.62 s per photo, 15 pairs of 6 photos
         "adjust_bundle": 0.86,
         "orthorectify_frames": 1.14,
         "compose_mosaic": 0.55,
@@ -65,7 +71,13 @@ BASES = (
     "weights",
     "done",
 )  # what a stage's time left comes from (core.labels names each)
-PRIOR_WEIGHT = 0.1  # how much of a whole job the history's pace counts for against this job's own measured pace
+# how much of a whole job the history's pace counts for against this job's own measured pace: on bench/eta.py's
+# runs one stage's seconds vary up to 2x from run to run with the machine's other work, and a pace taken from
+# the first stages alone (0.1) carried that to the rest of the job
+PRIOR_WEIGHT = 0.3
+# earlier jobs whose working megapixels per photo are within this factor of a job's predict it (history): the
+# seconds per unit of small synthetic frames read, matched and tied 2-3x slower than the Brighton strip's
+SIMILAR_SIZE = 2.0
 
 
 @dataclass(frozen=True)
@@ -160,24 +172,32 @@ def estimate(
 
 
 def _running(expected: float, fraction: float, elapsed: float) -> float:
-    """Seconds left of the running stage: its own rate, trusted as much as the share of it that is done."""
-    planned_left = expected * (1.0 - fraction)
+    """Seconds left of the running stage: its expected time less what has gone while it reports no share done
+    yet (a parted stage's plan, e.g. a mosaic's gains and seams), then its own rate, trusted as much as the
+    share of it that is done, and never less than what its expected time has left (a stage whose share done
+    jumps ahead of its time, as a plan's or a last step's share can, is not taken to be nearly done)."""
     if fraction <= 0.0 or elapsed <= 0.0:
-        return max(planned_left, expected - elapsed, 0.0)
+        return max(expected - elapsed, 0.0)
+    planned_left = expected * (1.0 - fraction)
     own_left = elapsed * (1.0 - fraction) / fraction
-    return fraction * own_left + (1.0 - fraction) * planned_left
+    return max(fraction * own_left + (1.0 - fraction) * planned_left, expected - elapsed)
 
 
 def work_unit(stage: str) -> str:
     """What a stage's time is counted per: ``photo_megapixels`` (the inputs' own pixels), ``megapixels`` (their
-    working pixels) or ``frames``."""
+    working pixels), ``pairs`` (of photos matched) or ``frames``."""
     if stage in PHOTO_PIXEL_STAGES:
         return "photo_megapixels"
+    if stage in PAIR_STAGES:
+        return "pairs"
     return "megapixels" if stage in PIXEL_STAGES else "frames"
 
 
 def _amount(stage: str, size: Mapping[str, float]) -> float | None:
-    value = size.get(work_unit(stage))
+    unit = work_unit(stage)
+    value = size.get(unit)
+    if unit == "pairs" and not (isinstance(value, int | float) and value > 0):
+        value = PAIRS_PER_PHOTO * size["frames"] if isinstance(size.get("frames"), int | float) else None
     return float(value) if isinstance(value, int | float) and value > 0 else None
 
 
@@ -203,15 +223,40 @@ def _prior(
     return out
 
 
-def seconds_per_unit(jobs: Sequence[tuple[Mapping[str, float], Mapping[str, float]]]) -> dict[str, float]:
-    """Median seconds per unit of work (``work_unit``) of each stage over earlier jobs: (size, stage seconds)."""
+def seconds_per_unit(
+    jobs: Sequence[tuple[Mapping[str, float], Mapping[str, float]]], reference: Mapping[str, float] | None = None
+) -> dict[str, float]:
+    """Median seconds per unit of work (``work_unit``) of each stage over earlier jobs: (size, stage seconds);
+    ``reference`` (a pipeline's ``DEFAULT_RATES``), when given, counts as one more job of the stages it has, so
+    that one earlier job, slowed down by other work on the machine, is not all there is to go by."""
     samples: dict[str, list[float]] = {}
+    if jobs and reference:
+        for name, rate in reference.items():
+            samples[name] = [float(rate)]
     for size, timings in jobs:
         for name, seconds in timings.items():
             amount = _amount(name, size)
             if amount is not None and isinstance(seconds, int | float) and seconds >= 0:
                 samples.setdefault(name, []).append(float(seconds) / amount)
-    return {name: sorted(v)[len(v) // 2] for name, v in samples.items()}
+    return {name: statistics.median(v) for name, v in samples.items()}
+
+
+def similar_jobs(
+    jobs: Sequence[tuple[Mapping[str, float], Mapping[str, float]]], size: Mapping[str, float]
+) -> list[tuple[Mapping[str, float], Mapping[str, float]]]:
+    """The earlier jobs (size, stage seconds) whose working megapixels per photo are within ``SIMILAR_SIZE`` of
+    a job of ``size``; all of them where that is not known."""
+    mine = _per_frame(size)
+    if mine is None:
+        return list(jobs)
+    return [
+        job for job in jobs if (theirs := _per_frame(job[0])) is None or 1 / SIMILAR_SIZE < theirs / mine < SIMILAR_SIZE
+    ]
+
+
+def _per_frame(size: Mapping[str, float]) -> float | None:
+    frames, pixels = size.get("frames"), size.get("megapixels")
+    return float(pixels) / float(frames) if frames and pixels and frames > 0 and pixels > 0 else None
 
 
 def working_megapixels(sizes: Sequence[tuple[int, int]], working_max_px: int | None) -> float:

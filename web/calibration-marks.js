@@ -1,6 +1,7 @@
 /* A calibration's (or a stereo rig's) photos with their board corners drawn on them: each mark coloured by its
- * reprojection error, and, for a finished calibration, fixed by dragging it, removed, or the whole photo left out,
- * then solved again (PUT /api/calibrations/<id>/markers: the marks of that photo replace its detected corners).
+ * reprojection error, and, for a finished job, fixed by dragging it, removed, or the whole photo left out, then
+ * solved again (PUT /api/calibrations/<id>/markers or /api/stereo-rigs/<id>/markers: the marks of that photo
+ * replace its detected corners; a rig's pair uses the marks both its photos have).
  *
  * The photo is a reduced JPEG (GET /api/jobs/<id>/photos/<index>/preview, signed) laid on a Leaflet map in
  * CRS.Simple over the photo's own pixels, so marks stay in full-size pixel coordinates whatever the preview's
@@ -15,7 +16,7 @@ const toMap = ([x, y]) => L.latLng(-(y + 0.5), x + 0.5);
 const toPixel = (latlng) => [latlng.lng - 0.5, -latlng.lat - 0.5];
 
 /** The section "Photos and marks" of a calibration's or rig's result card. `result` is the job's result (views
- * with their points, for a calibration); `editable`: a finished calibration, whose marks can be changed. */
+ * with their points); `editable`: a finished job, whose marks can be changed. */
 export async function calibrationPhotos(view, job, { stereo, result, signature, editable }) {
   const data = await api("GET", `/api/${stereo ? "stereo-rigs" : "calibrations"}/${job.id}/photos`, { signal: view.signal });
   const photos = Array.isArray(data && data.photos) ? data.photos : [];
@@ -26,7 +27,7 @@ export async function calibrationPhotos(view, job, { stereo, result, signature, 
   const readout = h("p", { class: "readout", "data-testid": "marks-readout", role: "status", "aria-live": "polite" });
   const status = h("p", { class: "muted small", "data-testid": "marks-status" });
   const error = h("p", { class: "form-error", role: "alert", "data-testid": "marks-error" });
-  const editor = editable ? markEditor(view, job, { status, error }) : null;
+  const editor = editable ? markEditor(view, job, { stereo, status, error }) : null;
   const map = L.map(mapNode, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 4, zoomSnap: 0.25, attributionControl: false });
   onAbort(view.signal, () => map.remove());
   let layers = L.layerGroup().addTo(map);
@@ -47,7 +48,7 @@ export async function calibrationPhotos(view, job, { stereo, result, signature, 
     const markers = points.map((point) => markerOf(point, layers, readout, editor));
     readout.textContent = points.length
       ? `${points.length} marks${used ? `, RMS ${formatNumber(used.rms_px, 3, "px")} (${used.source === "markers" ? "your marks" : "corners found"})`
-        : stereo ? " found (the rig's solve uses each pair's corners; per-mark errors are a calibration's)" : " found, not used by the solve"}. Click one to see where it is.`
+        : stereo ? " found, not used by the solve (its pair is left out)" : " found, not used by the solve"}. Click one to see where it is.`
       : `No marks: ${photo.reason || photo.marks || "left out"}.`;
     if (editor) editor.photo(photo, points, markers, Boolean(used));
   }
@@ -57,8 +58,7 @@ export async function calibrationPhotos(view, job, { stereo, result, signature, 
     h("h3", { id: "marks-heading" }, "Photos and marks"),
     h("div", { class: "control-row" }, h("label", { for: "marks-photo" }, "Photo"), pick),
     h("div", { class: "marks-grid" }, mapNode,
-      h("div", {}, readout, legend(), editor ? editor.node : h("p", { class: "muted small" },
-        stereo ? "A rig's marks are the corners found in each photo; they cannot be changed here." : "Marks can be changed once the job has finished."),
+      h("div", {}, readout, legend(), editor ? editor.node : h("p", { class: "muted small" }, "Marks can be changed once the job has finished."),
       status, error)));
   return { node, start: () => (photos.length ? show(photos[0].index) : null) };
 }
@@ -95,8 +95,8 @@ function markerOf(point, layers, readout, editor) {
   return marker;
 }
 
-/** The editing controls of a finished calibration's marks. */
-function markEditor(view, job, { status, error }) {
+/** The editing controls of a finished calibration's (or rig's) marks. */
+function markEditor(view, job, { stereo, status, error }) {
   const edit = h("input", { type: "checkbox", id: "marks-edit", "data-testid": "marks-edit" });
   const removeMark = h("button", { type: "button", class: "btn small", "data-testid": "mark-remove", disabled: true }, "Remove this mark");
   const save = h("button", { type: "button", class: "btn small primary", "data-testid": "marks-save", disabled: true }, "Save the marks and solve again");
@@ -134,7 +134,7 @@ function markEditor(view, job, { status, error }) {
     status.textContent = saying;
     for (const b of [save, leaveOut, restore, removeMark]) b.disabled = true;
     try {
-      await api("PUT", `/api/calibrations/${job.id}/markers`, { body: { markers } });
+      await api("PUT", `/api/${stereo ? "stereo-rigs" : "calibrations"}/${job.id}/markers`, { body: { markers } });
       if (!view.signal.aborted) window.dispatchEvent(new HashChangeEvent("hashchange")); // the page again: it follows the new solve
     } catch (err) {
       if (view.signal.aborted) return;
@@ -151,7 +151,10 @@ function markEditor(view, job, { status, error }) {
       h("label", { class: "check small", for: "marks-edit" }, edit, " Move marks (drag them)"),
       h("div", { class: "row wrap" }, removeMark, save),
       h("div", { class: "row wrap" }, leaveOut, restore),
-      h("p", { class: "muted small" }, "A photo's saved marks replace the corners found in it; the other photos keep theirs.")),
+      h("p", { class: "muted small" }, stereo
+        ? "A photo's saved marks replace the corners found in it. A pair uses the marks both its photos have; against"
+          + " the corners found in the other photo, a removed mark also leaves out the one opposite it on the board."
+        : "A photo's saved marks replace the corners found in it; the other photos keep theirs.")),
     photo(photo, points, markers, used) {
       current = { photo, points, markers, removed: new Set(), dirty: false };
       selected = null;

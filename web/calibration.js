@@ -48,7 +48,7 @@ export async function showCalibration(view, job, card) {
   }
   const body = stereo ? stereoBody(job, result) : cameraBody(result);
   const label = (name) => (name === "calibration.json" ? "Calibration (camera JSON)" : name);
-  const photos = await calibrationPhotos(view, job, { stereo, result, signature, editable: !stereo }).catch((err) => ({
+  const photos = await calibrationPhotos(view, job, { stereo, result, signature, editable: true }).catch((err) => ({
     node: h("p", { class: "muted small", "data-testid": "calibration-photos" }, `The photos could not be listed: ${messageOf(err)}`),
     start: () => {},
   }));
@@ -227,6 +227,7 @@ function stereoBody(job, result) {
         leftOut(result.left_out),
       ),
     ),
+    Array.isArray(result.worst_points) ? h("div", { class: "quality-block" }, worstTable(result.worst_points)) : null,
     measureForm(job.id),
   ];
 }

@@ -201,6 +201,8 @@ class StereoCalibrationConfig(BaseModel):
     terms: list[DistortionTerm] = Field(["k1", "k2", "t1", "t2", "k3"], max_length=5)  # distortion terms per camera
     left_camera: dict[str, Any] | None = None  # fixed intrinsics (camera JSON); None: calibrated here
     right_camera: dict[str, Any] | None = None  # same, right camera
+    # marked points per photo (by its name): they replace its found corners, or remove: true leaves it out
+    markers: list[Marks] = Field([], max_length=MAX_PHOTOS)
 
     _pattern = field_validator("pattern")(lambda v: _check_pattern(v))
 

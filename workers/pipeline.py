@@ -186,7 +186,15 @@ def run_stage(
 # the records, read in the plan's order, into the stage's outputs and report. The parts' results depend on their
 # keys only, so the stage's outputs are the same bytes whatever processes ran the parts and in whatever order.
 # ``part_threads(cfg)``, if the module has it, is how many parts one process runs at once (default: a core each).
-PLAN_SHARE, PARTS_SHARE = 0.05, 0.85  # of a parted stage's progress; finish has the rest
+# ``PROGRESS_SHARES = (plan, parts)``, if the module has it, is what share of its progress planning and the parts
+# take (the time-left estimate extrapolates a running stage's share done; finish has the rest).
+PLAN_SHARE, PARTS_SHARE = 0.05, 0.85  # of a parted stage's progress, unless its module says otherwise
+
+
+def progress_shares(module: ModuleType) -> tuple[float, float]:
+    """(plan, parts) shares of a parted stage's progress; finish has the rest."""
+    plan, parts = getattr(module, "PROGRESS_SHARES", (PLAN_SHARE, PARTS_SHARE))
+    return float(plan), float(parts)
 
 
 def plan_stage(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any) -> list[str]:
@@ -232,10 +240,10 @@ def finish_stage(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, pro
 def run_parted(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, progress: ProgressFn) -> dict[str, Any]:
     """A stage in parts, whole in this process: plan, the parts on threads, finish."""
     progress(0.0, "planning")
+    plan, parts = progress_shares(module)
     todo = plan_stage(module, stage, ws, cfg)
-    run_parts(module, stage, ws, cfg, todo, lambda f, d: progress(PLAN_SHARE + PARTS_SHARE * f, d))
-    tail = 1.0 - PLAN_SHARE - PARTS_SHARE
-    report = finish_stage(module, stage, ws, cfg, lambda f, d: progress(PLAN_SHARE + PARTS_SHARE + tail * f, d))
+    run_parts(module, stage, ws, cfg, todo, lambda f, d: progress(plan + parts * f, d))
+    report = finish_stage(module, stage, ws, cfg, lambda f, d: progress(plan + parts + (1.0 - plan - parts) * f, d))
     report["parts"] = parts_summary(ws, stage)
     return report
 

@@ -34,9 +34,7 @@ from workers.celery_app import app
 from workers.config import build_config
 from workers.pipeline import (
     PARTED_STAGES,
-    PARTS_SHARE,
     PIPELINES,
-    PLAN_SHARE,
     PipelineError,
     finish_stage,
     forget_parts_if_stale,
@@ -46,6 +44,7 @@ from workers.pipeline import (
     parts_summary,
     pipeline_key,
     plan_stage,
+    progress_shares,
     run_parts,
     run_stage,
     stage_done,
@@ -212,10 +211,11 @@ def execute_parts(
         rec = JobRecorder(db, job_id, pipeline, stage, beat=beat)
 
         unit = part_unit(stages.stage_module(stage))
+        plan, parts = progress_shares(stages.stage_module(stage))
 
         def progress(_fraction: float, _detail: str) -> None:
             done = len(ws.parts_done(stage))
-            rec.progress(PLAN_SHARE + PARTS_SHARE * done / total, f"{unit} {done}/{total}")
+            rec.progress(plan + parts * done / total, f"{unit} {done}/{total}")
 
         try:
             run_parts(stages.stage_module(stage), stage, ws, cfg, keys, progress)
@@ -273,9 +273,9 @@ def execute_finish(
         def finish() -> dict[str, Any]:
             left = [k for k in ws.load_plan(stage) if k not in ws.parts_done(stage)]
             run_parts(module, stage, ws, cfg, left, noop_progress)  # parts lost with their chunk, if any
-            tail = 1.0 - PLAN_SHARE - PARTS_SHARE
+            plan, parts = progress_shares(module)
             report = finish_stage(
-                module, stage, ws, cfg, lambda f, d: rec.progress(PLAN_SHARE + PARTS_SHARE + tail * f, d)
+                module, stage, ws, cfg, lambda f, d: rec.progress(plan + parts + (1.0 - plan - parts) * f, d)
             )
             report["wall_seconds"] = round(time.time() - ws.plan_started(stage), 3)
             report["parts"] = parts_summary(ws, stage)

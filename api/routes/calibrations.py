@@ -50,7 +50,7 @@ def calibration_photos(job_id: JobId, db: DbDep, settings: SettingsDep) -> dict[
 @router.put("/calibrations/{job_id}/markers", status_code=202, response_model=JobOut)
 def replace_markers(job_id: JobId, body: MarksUpdate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
     """Replace or remove the marks of some photos, then solve again."""
-    return service.replace_markers(db, settings, queue, job_id, body)
+    return service.replace_markers(db, settings, queue, job_id, body, JobKind.calibration)
 
 
 @router.post("/stereo-rigs", status_code=202, response_model=JobOut)
@@ -84,6 +84,12 @@ def get_stereo_rig(job_id: JobId, db: DbDep, settings: SettingsDep) -> JobResult
 def stereo_rig_photos(job_id: JobId, db: DbDep, settings: SettingsDep) -> dict[str, Any]:
     """The photos of a stereo rig (left ones, then right ones, ``pair`` their order), as for a calibration."""
     return service.calibration_photos(db, settings, job_id, JobKind.stereo_calibration)
+
+
+@router.put("/stereo-rigs/{job_id}/markers", status_code=202, response_model=JobOut)
+def replace_rig_markers(job_id: JobId, body: MarksUpdate, db: DbDep, settings: SettingsDep, queue: QueueDep) -> JobOut:
+    """Replace or remove the marks of some of a rig's photos (left or right, by name), then solve again."""
+    return service.replace_markers(db, settings, queue, job_id, body, JobKind.stereo_calibration)
 
 
 @router.post("/stereo-rigs/{job_id}/measure")

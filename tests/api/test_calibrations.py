@@ -218,7 +218,7 @@ def test_bad_calibration_requests_are_422_and_store_nothing(
 ) -> None:
     files = upload(blank_photos(tmp_path, count)) if count else None
     response = client.post("/api/calibrations", files=files, data=data)
-    assert response.status_code == 422 and fragment in response.json()["detail"], response.text
+    assert response.status_code == 422 and fragment in str(response.json()["detail"]), response.text
     assert recording_queue.sent == [] and client.get("/api/jobs").json() == []
     assert not (api_settings.data_dir / "jobs").exists() or not any((api_settings.data_dir / "jobs").iterdir())
 
@@ -240,3 +240,84 @@ def test_marks_need_a_finished_calibration_and_known_ids(client: TestClient, tmp
     assert client.put("/api/calibrations/999/markers", json=marks).status_code == 404
     assert client.get("/api/calibrations/999").status_code == 404
     assert client.get(f"/api/stereo-rigs/{job['id']}").status_code == 404  # a calibration is not a rig
+
+
+@pytest.mark.realdata
+def test_a_rigs_marks_moved_and_removed_then_solved_again(client: TestClient, api_settings) -> None:
+    left, right = chessboards("left")[:4], chessboards("right")[:4]
+    options = json.dumps({"pattern": [9, 6], "square_mm": 25})
+    job = client.post(
+        "/api/stereo-rigs", files=upload(left, "left") + upload(right, "right"), data={"options": options}
+    )
+    marks = {"markers": [{"image": left[0].name, "remove": True}]}
+    assert client.put(f"/api/stereo-rigs/{job.json()['id']}/markers", json=marks).status_code == 409  # not solved yet
+    assert run_job(client, api_settings, job.json())["status"] == "succeeded"
+    job_id = job.json()["id"]
+    result = client.get(f"/api/stereo-rigs/{job_id}").json()["result"]
+    views = {v["image"]: v for v in result["views"]}
+    assert len(views) == 8 and all(len(v["points"]) == 54 and v["source"] == "chessboard" for v in views.values())
+    assert result["worst_points"][0]["error_px"] == max(p["error_px"] for v in views.values() for p in v["points"])
+
+    # mark 20 of the second left photo moved 6 px, mark 30 of the first right photo removed, the last pair left out
+    moved, trimmed = views[left[1].name]["points"], views[right[0].name]["points"]
+    xy = [p["image_xy"] for p in moved]
+    xy[20] = [xy[20][0] + 6.0, xy[20][1]]
+    kept = [p for p in trimmed if p["index"] != 30]
+    marks = {
+        "markers": [
+            {"image": left[1].name, "image_points": xy, "board_points": [p["board_xyz"] for p in moved]},
+            {
+                "image": right[0].name,
+                "image_points": [p["image_xy"] for p in kept],
+                "board_points": [p["board_xyz"] for p in kept],
+            },
+            {"image": left[3].name, "remove": True},
+        ]
+    }
+    again = client.put(f"/api/stereo-rigs/{job_id}/markers", json=marks)
+    assert again.status_code == 202 and again.json()["status"] == "queued"
+    assert client.put(f"/api/calibrations/{job_id}/markers", json=marks).status_code == 404  # a rig is no calibration
+    assert run_job(client, api_settings, again.json())["status"] == "succeeded"
+    solved = client.get(f"/api/stereo-rigs/{job_id}").json()["result"]
+    assert len(solved["pairs"]) == 3 and any(f"{left[3].name}: removed by the user" == r for r in solved["left_out"])
+    worst = solved["worst_points"][0]
+    assert (worst["image"], worst["index"]) == (left[1].name, 20) and worst["error_px"] > 3.0
+    views = {v["image"]: v for v in solved["views"]}
+    assert views[left[1].name]["source"] == "markers" and views[right[0].name]["source"] == "markers"
+    # the first pair keeps the marks both photos have: mark 30 and the one opposite it (53 - 30) are gone
+    board = [p["board_xyz"] for p in views[left[0].name]["points"]]
+    assert len(board) == 52 and [75.0, 75.0, 0.0] not in board and [125.0, 50.0, 0.0] not in board
+    assert abs(solved["baseline_mm"] - result["baseline_mm"]) < 0.02 * result["baseline_mm"]
+    photos = {p["name"]: p["marks"] for p in client.get(f"/api/stereo-rigs/{job_id}/photos").json()["photos"]}
+    assert (photos[left[1].name], photos[right[0].name], photos[left[3].name]) == ("marked", "marked", "removed")
+
+
+def test_a_rigs_bad_marks_are_422_and_change_nothing(client: TestClient, api_settings, tmp_path: Path) -> None:
+    photos = blank_photos(tmp_path, 6)
+    job = client.post("/api/stereo-rigs", files=upload(photos[:3], "left") + upload(photos[3:], "right")).json()
+    assert run_job(client, api_settings, job)["status"] == "failed"  # no board in a blank photo
+    config = api_settings.data_dir / "jobs" / str(job["id"]) / "config.json"
+    before = config.read_bytes()
+    for body, fragment in [
+        ({"markers": [{"image": "other.png", "remove": True}]}, "no photo named"),
+        (
+            {"markers": [{"image": "wall0.png", "image_points": [[1, 2]] * 6, "board_points": [[0, 0, 0]] * 5}]},
+            "6 image",
+        ),
+        (
+            {"markers": [{"image": "wall4.png", "image_points": [[1, 2]] * 3, "board_points": [[0, 0, 0]] * 3}]},
+            "at least 6",
+        ),
+        ({"markers": []}, "markers"),
+        ({"markers": [{"image": "wall0.png", "image_points": [[1, "x"]] * 6}]}, "markers"),
+    ]:
+        response = client.put(f"/api/stereo-rigs/{job['id']}/markers", json=body)
+        assert response.status_code == 422 and fragment in str(response.json()["detail"]), response.text
+    assert config.read_bytes() == before and client.get(f"/api/jobs/{job['id']}").json()["status"] == "failed"
+    assert (
+        client.put("/api/stereo-rigs/999/markers", json={"markers": [{"image": "a", "remove": True}]}).status_code
+        == 404
+    )
+    eve = user_headers(client, "eve")
+    marks = {"markers": [{"image": "wall0.png", "remove": True}]}
+    assert client.put(f"/api/stereo-rigs/{job['id']}/markers", json=marks, headers=eve).status_code == 404

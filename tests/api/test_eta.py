@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from api.eta_service import forget_history
+from api.eta_service import forget_history, job_size
 from core.db import Database, Job
-from core.eta import DEFAULT_RATES, UnitCount, estimate
+from core.eta import DEFAULT_RATES, UnitCount, estimate, seconds_per_unit
 from core.kinds import JobStatus
 from tests.api.test_jobs import flight_with
 from tests.scenes import make_flight
@@ -64,14 +64,24 @@ def test_the_worker_records_the_work_and_the_api_estimates_from_it(
     assert done["status"] == "succeeded" and done["eta"] is None
     assert record(api_settings, job["id"]).work["stages"]["match_features"]["unit"] == "pair"
 
-    # the next job of the pipeline starts from the rates this one measured, per input frame or megapixel
+    # the next job of the pipeline starts from the rates this one measured, per input frame or megapixel (with
+    # one job to go by, halfway to the reference machine's)
     forget_history()
     second = client.post(
         "/api/jobs", json={"flight_id": flight_with(client, frames), "options": {"working_max_px": 320}}
     )
     eta = client.get(f"/api/jobs/{second.json()['id']}").json()["eta"]
-    timings = done["timings"]
-    assert eta["seconds_left"] == pytest.approx(sum(timings.values()), abs=0.5)
+    size = job_size(record(api_settings, second.json()["id"]).work)
+    first = job_size(record(api_settings, job["id"]).work)
+    assert first["pairs"] == record(api_settings, job["id"]).work["stages"]["match_features"]["count"]
+    assert "pairs" not in size  # not matched yet: its pairs are guessed from its photos
+    rates = seconds_per_unit([(first, done["timings"])], DEFAULT_RATES["mosaic"])
+    defaults = DEFAULT_RATES["mosaic"]
+    assert rates["compose_mosaic"] == pytest.approx(
+        (done["timings"]["compose_mosaic"] / size["megapixels"] + defaults["compose_mosaic"]) / 2
+    )
+    expected = estimate([(s.name, s.weight) for s in PIPELINES["mosaic"]], size, {}, None, 0.0, 0.0, rates)
+    assert expected is not None and eta["seconds_left"] == pytest.approx(expected.seconds_left, abs=0.1)
     assert {s["basis"] for s in eta["stages"].values()} == {"history"}
 
 

@@ -1,6 +1,7 @@
 """Calibration and stereo-rig pages in headless Chromium against the real service: a job started by dropping
 chessboard photos, the corners found drawn on each photo, a mark moved and a photo left out, then solved again;
-a rig from pairs of photos with its corners shown (real photos: ../shared/data/calib_chessboard)."""
+a rig from pairs of photos with its corners shown, one mark moved and one removed, then solved again (real
+photos: ../shared/data/calib_chessboard)."""
 
 from __future__ import annotations
 
@@ -39,6 +40,21 @@ def _screenshot(page: Any, name: str) -> None:
     page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
 
 
+def _drag(page: Any, mark: Any, photo_px: float) -> None:
+    """Drag ``mark`` right by ``photo_px`` pixels of the 640 px wide photo shown."""
+    box = mark.bounding_box()
+    scale = page.evaluate(
+        "() => { const m = document.querySelector('[data-testid=\"marks-map\"] img.leaflet-image-layer');"
+        " return m.getBoundingClientRect().width / 640; }"
+    )
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + photo_px / 2 * scale, y, steps=3)
+    page.mouse.move(x + photo_px * scale, y, steps=3)
+    page.mouse.up()
+
+
 def test_a_calibration_from_dropped_photos_with_marks_fixed_and_removed(signed_in_page, live_service) -> None:
     from playwright.sync_api import expect
 
@@ -71,17 +87,7 @@ def test_a_calibration_from_dropped_photos_with_marks_fixed_and_removed(signed_i
     # move mark 20 of the photo shown by about 8 photo px, save: the solve runs again and names that mark
     shown = page.get_by_test_id("marks-photo").locator("option:checked").inner_text().split(" (")[0]
     page.get_by_test_id("marks-edit").check()
-    box = marks.nth(20).bounding_box()
-    scale = page.evaluate(
-        "() => { const m = document.querySelector('[data-testid=\"marks-map\"] img.leaflet-image-layer');"
-        " return m.getBoundingClientRect().width / 640; }"
-    )
-    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-    page.mouse.move(x, y)
-    page.mouse.down()
-    page.mouse.move(x + 4 * scale, y, steps=3)
-    page.mouse.move(x + 8 * scale, y, steps=3)
-    page.mouse.up()
+    _drag(page, marks.nth(20), 8)
     expect(page.get_by_test_id("marks-save")).to_be_enabled()
     _solved_again(page, watch, page.get_by_test_id("marks-save"))
     worst = page.get_by_test_id("worst-points").locator("tbody tr").first.locator("td")
@@ -103,7 +109,7 @@ def test_a_calibration_from_dropped_photos_with_marks_fixed_and_removed(signed_i
     watch.assert_clean(live_service.url)
 
 
-def test_a_stereo_rig_from_pairs_shows_the_corners_of_each_photo(signed_in_page, live_service) -> None:
+def test_a_stereo_rig_from_pairs_with_a_mark_moved_and_one_removed(signed_in_page, live_service) -> None:
     from playwright.sync_api import expect
 
     page, watch = signed_in_page
@@ -124,6 +130,31 @@ def test_a_stereo_rig_from_pairs_shows_the_corners_of_each_photo(signed_in_page,
     page.get_by_test_id("marks-photo").select_option("4")  # the first right photo
     expect(page.locator('[data-testid="marks-map"] .mark-icon')).to_have_count(54)
     page.wait_for_function(OVERLAY_LOADED_JS)
-    expect(page.get_by_test_id("marks-editor")).to_have_count(0)  # a rig's corners are not edited here
     _screenshot(page, "stereo_rig_marks")
+
+    # on the second left photo, mark 20 moved by about 8 photo px and mark 30 removed, then solved again
+    page.get_by_test_id("marks-photo").select_option("1")
+    page.wait_for_function(OVERLAY_LOADED_JS)
+    marks = page.locator('[data-testid="marks-map"] .mark-icon')
+    page.get_by_test_id("marks-edit").check()
+    _drag(page, marks.nth(20), 8)
+    marks.nth(30).click()
+    expect(page.get_by_test_id("marks-readout")).to_contain_text("Mark 30 at x")
+    page.get_by_test_id("mark-remove").click()
+    expect(marks).to_have_count(53)
+    expect(page.get_by_test_id("marks-save")).to_be_enabled()
+    _solved_again(page, watch, page.get_by_test_id("marks-save"))
+    worst = page.get_by_test_id("worst-points").locator("tbody tr").first.locator("td")
+    expect(worst.nth(0)).to_have_text(left[1].name)
+    expect(worst.nth(1)).to_have_text("20")
+    assert float(worst.nth(2).inner_text()) > 3.0
+    # the pair keeps the marks both photos have: mark 30 and the one opposite it on the board are left out
+    page.get_by_test_id("marks-photo").select_option("1")
+    expect(page.get_by_test_id("marks-photo").locator("option:checked")).to_contain_text("52 marks")
+    expect(marks).to_have_count(52)
+    page.wait_for_function(OVERLAY_LOADED_JS)
+    expect(page.get_by_test_id("marks-readout")).to_contain_text("52 marks, RMS")
+    expect(page.get_by_test_id("photo-restore")).to_be_visible()
+    expect(page.get_by_test_id("pair-row")).to_have_count(4)
+    _screenshot(page, "stereo_rig_marks_edited")
     watch.assert_clean(live_service.url)

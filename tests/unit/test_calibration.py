@@ -24,6 +24,7 @@ from workers.algorithms.calibration import (
     board_points,
     calibrate_camera,
     find_chessboard,
+    paired_points,
     plumb_line,
     stereo_calibrate,
 )
@@ -185,6 +186,30 @@ def test_stereo_calibration_undoes_a_board_found_in_reverse_order() -> None:
     assert result.reversed_views == (2, 5)
     assert abs(result.baseline - straight.baseline) < 1e-6
     assert np.allclose(result.errors_right[2], straight.errors_right[2][::-1])  # in the order the caller gave
+
+
+def test_a_pair_keeps_the_marks_both_photos_have_and_a_reversed_board_can_still_be_turned() -> None:
+    scene = stereo_scene(seed=1)
+    straight = stereo_calibrate(scene.left, scene.right, scene.views)
+    obj, lpx, rpx = scene.views[0]
+    assert all(a is b for a, b in zip(paired_points((obj, lpx), (obj, rpx)), (obj, lpx, rpx), strict=True))
+    # right points marked by hand with their own board points, in reverse order: matched by board point
+    both = paired_points((obj, lpx), (obj[::-1], rpx[::-1]))
+    assert np.array_equal(both[0], obj) and np.array_equal(both[2], rpx)
+    # marks 7 and 40 removed from each left photo; the corners of views 2 and 5 found in reverse in the right one
+    centre, gone = obj.mean(axis=0), [7, 40]
+    views, loose = [], []
+    for v, (o, lp, rp) in enumerate(scene.views):
+        right = (o, rp[::-1]) if v in (2, 5) else (o, rp)
+        views.append(paired_points((np.delete(o, gone, 0), np.delete(lp, gone, 0)), right, centre))
+        loose.append(paired_points((np.delete(o, gone, 0), np.delete(lp, gone, 0)), right))
+    assert [len(v[0]) for v in views] == [len(obj) - 4] * len(views)  # and the marks opposite 7 and 40
+    assert not any(np.allclose(p, obj[k]) or np.allclose(p, obj[-1 - k]) for p in views[0][0] for k in gone)
+    result = stereo_calibrate(scene.left, scene.right, views)
+    assert result.reversed_views == (2, 5) and abs(result.baseline - straight.baseline) < 0.05
+    assert result.rms_px < 1.1 * straight.rms_px
+    # without the half-turn closure the reversed views cannot be turned round: they spoil the solve
+    assert stereo_calibrate(scene.left, scene.right, loose).rms_px > 10 * straight.rms_px
 
 
 def test_stereo_calibration_rejects_misuse() -> None:

@@ -6,7 +6,14 @@ from typing import Any
 
 import numpy as np
 
-from workers.algorithms.calibration import MIN_VIEWS, CalibrationResult, board_points, board_views, calibrate_camera
+from workers.algorithms.calibration import (
+    MIN_VIEWS,
+    CalibrationResult,
+    board_points,
+    board_views,
+    calibrate_camera,
+    view_entry,
+)
 from workers.algorithms.geometry import CONVENTIONS
 from workers.config import CalibrationConfig
 from workers.pipeline import PipelineError
@@ -53,30 +60,9 @@ def calibration_report(
         "rms_px": result.rms_px,
         "std": result.std,
         "views": [
-            _view_entry(name, source, view, res, err)
+            view_entry(name, source, view[0], view[1], res, err)
             for name, source, view, res, err in zip(names, sources, views, result.residuals, result.errors, strict=True)
         ],
         "worst_points": [{"image": names[v], "index": i, "error_px": e} for v, i, e in result.worst_points(10)],
         "left_out": missing,
-    }
-
-
-def _view_entry(
-    name: str, source: str, view: tuple[np.ndarray, np.ndarray], residuals: np.ndarray, errors: np.ndarray
-) -> dict[str, Any]:
-    board, image = view
-    return {
-        "image": name,
-        "source": source,
-        "rms_px": float(np.sqrt(np.mean(errors**2))),
-        "points": [
-            {
-                "index": i,
-                "image_xy": image[i].tolist(),
-                "board_xyz": board[i].tolist(),
-                "residual_px": residuals[i].tolist(),
-                "error_px": float(errors[i]),
-            }
-            for i in range(len(errors))
-        ],
     }

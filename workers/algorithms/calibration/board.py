@@ -129,3 +129,72 @@ def board_views(
         else:
             missing.append(f"{name}: {corners[name]['reason']}")
     return names, views, sources, missing
+
+
+def paired_points(
+    left: tuple[np.ndarray, np.ndarray],
+    right: tuple[np.ndarray, np.ndarray],
+    centre: np.ndarray | None = None,
+    tol: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The board points seen in both photos of a stereo pair, with their pixels in each.
+
+    Two views of the found corners share one board (same points, same order) and come back as they
+    are. Where a photo's marks were changed by hand (a mark moved keeps its board point, one removed
+    drops it), the pair keeps the board points both views have, in the left view's order.
+
+    Parameters
+    ----------
+    left, right : (board points (N, 3) float64, pixels (N, 2) float64, (x, y)) of each photo.
+    centre : (3,) float64, the board's centre. Given, a kept point whose half-turn image about it is not
+        kept is dropped too, so a board found in reverse order in one photo (``find_chessboard``)
+        can still be turned round by ``stereo_calibrate``, which needs a half-turn-symmetric set.
+    tol : how close two board points are to be one, board units.
+
+    Returns
+    -------
+    (M, 3) board points, (M, 2) left pixels, (M, 2) right pixels; M may be 0.
+    """
+    (lobj, lpx), (robj, rpx) = left, right
+    if lobj.shape == robj.shape and np.allclose(lobj, robj, rtol=0.0, atol=tol):
+        return lobj, lpx, rpx
+
+    def key(point: np.ndarray) -> tuple[int, ...]:
+        return tuple(int(v) for v in np.round(point / tol))
+
+    in_right = {key(p): j for j, p in enumerate(robj)}
+    both = [(i, in_right[key(p)]) for i, p in enumerate(lobj) if key(p) in in_right]
+    if centre is not None:
+        kept = {key(lobj[i]) for i, _ in both}
+        both = [(i, j) for i, j in both if key(2.0 * centre - lobj[i]) in kept]
+    li = np.array([i for i, _ in both], dtype=np.intp)
+    ri = np.array([j for _, j in both], dtype=np.intp)
+    return lobj[li].reshape(-1, 3), lpx[li].reshape(-1, 2), rpx[ri].reshape(-1, 2)
+
+
+def view_entry(
+    name: str, source: str, board: np.ndarray, image: np.ndarray, residuals: np.ndarray, errors: np.ndarray
+) -> dict[str, Any]:
+    """One photo's marks in a calibration report: for each, its pixel, board point, residual and error.
+
+    Parameters
+    ----------
+    name, source : the photo and where its points came from ("chessboard" or "markers").
+    board, image : (N, 3) board points and (N, 2) pixels (x, y) the solve used, in the same order.
+    residuals, errors : (N, 2) projected minus observed pixel and (N,) its length, px.
+    """
+    return {
+        "image": name,
+        "source": source,
+        "rms_px": float(np.sqrt(np.mean(errors**2))),
+        "points": [
+            {
+                "index": i,
+                "image_xy": image[i].tolist(),
+                "board_xyz": board[i].tolist(),
+                "residual_px": residuals[i].tolist(),
+                "error_px": float(errors[i]),
+            }
+            for i in range(len(errors))
+        ],
+    }
