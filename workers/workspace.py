@@ -75,6 +75,7 @@ _CORNERS = "corners.json"
 _CALIBRATION = "calibration.json"
 _CAMERAS = "cameras.json"
 _TIE_POINTS = "tie_points.npz"
+_ORTHO_SURFACE = "ortho_surface.npz"
 _ORIENTATION = "orientation.json"
 _COMPARISON = "comparison.json"
 _REPORT = "report.json"
@@ -346,6 +347,23 @@ class JobWorkspace:
         """(N, 3) float64 world points ``adjust_bundle`` saved."""
         with np.load(self.root / _TIE_POINTS) as data:
             return np.asarray(data["points"])
+
+    def save_ortho_surface(self, heights: np.ndarray | None, origin: tuple[float, float], cell: float) -> None:
+        """The surface ``orthorectify_frames`` projected onto: heights (H, W) float64 m, cell (row, col) centred
+        on world (origin x + col * cell, origin y + row * cell), rows northwards; None removes it (a plane)."""
+        path = self.root / _ORTHO_SURFACE
+        if heights is None:
+            path.unlink(missing_ok=True)
+            return
+        _save_npz(path, heights=heights, origin=np.asarray(origin, np.float64), cell=np.asarray(cell, np.float64))
+
+    def load_ortho_surface(self) -> dict[str, Any] | None:
+        """``heights``, ``origin`` and ``cell`` as saved, or None (the frames were projected onto a plane)."""
+        path = self.root / _ORTHO_SURFACE
+        if not path.exists():
+            return None
+        with np.load(path) as data:
+            return {"heights": data["heights"], "origin": tuple(data["origin"].tolist()), "cell": float(data["cell"])}
 
     def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"

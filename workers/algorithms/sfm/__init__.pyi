@@ -79,6 +79,9 @@ from .ortho import (
     GroundSurface as GroundSurface,
 )
 from .ortho import (
+    dense_surface as dense_surface,
+)
+from .ortho import (
     ground_crop as ground_crop,
 )
 from .ortho import (

@@ -193,3 +193,79 @@ def relief_maps(
     seen = camera.project((ground - C) @ R.T)
     shape = (y1 - y0, x1 - x0)
     return seen[:, 0].reshape(shape).astype(np.float32), seen[:, 1].reshape(shape).astype(np.float32)
+
+
+# -- A surface from dense stereo ----------------------------------------------------------------------------
+
+MIN_CELL_POINTS = 3  # a cell of the dense surface takes a height from at least this many points ...
+DENSE_OUTLIER_SIGMAS = 5.0  # ... unless it is this many robust sigmas from the median of the 5 x 5 cells around
+DENSE_OUTLIER_FLOOR_M = 0.25  # ... and farther than this (the spread of a clean surface's own cells)
+FILL_SIGMA_CELLS = 3.0  # the dense surface's offset from the base fades over this many cells past its edge
+MAX_DENSE_CELLS = 16_000_000  # a finer grid than this is coarsened
+
+
+def dense_surface(
+    points: np.ndarray, base: GroundSurface, cell: float, smooth_cells: float = 1.0
+) -> tuple[GroundSurface, np.ndarray]:
+    """A surface on a grid of ``cell`` metres from dense stereo points fused over pairs, and its cells they
+    measured, (rows, cols) bool.
+
+    Every cell with ``MIN_CELL_POINTS`` points takes their median height (a wrong match does not pull it, and
+    the pairs that see a cell are fused by it); a cell far from the cells around it is dropped. Cells without a
+    height take the ``base`` surface's (the tie points'), shifted near measured cells by the measured cells'
+    offset from it (a normalised Gaussian of ``FILL_SIGMA_CELLS``, fading to the base where no cell is near),
+    so the two meet without a step; the grid is then smoothed by a Gaussian of ``smooth_cells``. The grid spans
+    the base surface and the points.
+
+    points : (N, 3) float64 world points; base : the tie points' surface; cell : metres
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    rows0, cols0 = base.heights.shape
+    lo = np.array([base.x0, base.y0]) - 0.5 * base.cell
+    hi = lo + base.cell * np.array([cols0, rows0])
+    if len(pts):
+        lo, hi = np.minimum(lo, pts[:, :2].min(axis=0)), np.maximum(hi, pts[:, :2].max(axis=0))
+    cell = max(float(cell), float(np.sqrt(np.prod(hi - lo) / MAX_DENSE_CELLS)))
+    cols, rows = (np.floor((hi - lo) / cell).astype(int) + 1).tolist()
+    measured = _cell_medians(pts, lo, cell, rows, cols)
+    grid_x, grid_y = np.meshgrid(lo[0] + (np.arange(cols) + 0.5) * cell, lo[1] + (np.arange(rows) + 0.5) * cell)
+    below = base.height_at(grid_x, grid_y)
+    known = np.isfinite(measured)
+    known &= ~_off_neighbours(np.where(known, measured, below), known)
+    offset = np.where(known, measured - below, 0.0)
+    weight = ndimage.gaussian_filter(known.astype(np.float64), FILL_SIGMA_CELLS, mode="constant")
+    spread = ndimage.gaussian_filter(offset, FILL_SIGMA_CELLS, mode="constant")
+    fade = np.clip(weight / 0.25, 0.0, 1.0)  # a lone measured cell shifts its surroundings only partly
+    filled = below + np.where(weight > 1e-6, spread / np.maximum(weight, 1e-6), 0.0) * fade
+    heights = np.where(known, measured, filled)
+    if smooth_cells > 0:
+        heights = ndimage.gaussian_filter(heights, smooth_cells, mode="nearest")
+    surface = GroundSurface(heights, float(lo[0] + 0.5 * cell), float(lo[1] + 0.5 * cell), cell)
+    return surface, known
+
+
+def _cell_medians(pts: np.ndarray, lo: np.ndarray, cell: float, rows: int, cols: int) -> np.ndarray:
+    """(rows, cols) median height of the points in each cell, NaN with fewer than ``MIN_CELL_POINTS``."""
+    out = np.full(rows * cols, np.nan)
+    if len(pts) == 0:
+        return out.reshape(rows, cols)
+    index = np.floor((pts[:, :2] - lo) / cell).astype(np.int64)
+    index = np.clip(index, 0, [cols - 1, rows - 1])
+    flat = index[:, 1] * cols + index[:, 0]
+    order = np.lexsort((pts[:, 2], flat))  # by cell, then by height within it
+    z, flat = pts[order, 2], flat[order]
+    cells, starts, counts = np.unique(flat, return_index=True, return_counts=True)
+    enough = counts >= MIN_CELL_POINTS
+    starts, counts, cells = starts[enough], counts[enough], cells[enough]
+    out[cells] = 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
+    return out.reshape(rows, cols)
+
+
+def _off_neighbours(heights: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(rows, cols) bool: measured cells far from the median of the 5 x 5 cells around them (a mismatch)."""
+    if not known.any():
+        return np.zeros_like(known)
+    off = np.abs(heights - ndimage.median_filter(heights, size=5, mode="nearest"))
+    limit = max(DENSE_OUTLIER_SIGMAS * 1.4826 * float(np.median(off[known])), DENSE_OUTLIER_FLOOR_M)
+    return known & (off > limit)
