@@ -25,6 +25,7 @@ from workers.records import Alignment, Coverage, Frame, Georef, PairRecord, Reje
 
 if TYPE_CHECKING:  # imported where used: the API imports this module and must not load OpenCV
     from workers.algorithms.cracks import Crack
+    from workers.algorithms.sfm import GroundSurface
     from workers.algorithms.specimen import Surface
 
 
@@ -348,22 +349,25 @@ class JobWorkspace:
         with np.load(self.root / _TIE_POINTS) as data:
             return np.asarray(data["points"])
 
-    def save_ortho_surface(self, heights: np.ndarray | None, origin: tuple[float, float], cell: float) -> None:
-        """The surface ``orthorectify_frames`` projected onto: heights (H, W) float64 m, cell (row, col) centred
-        on world (origin x + col * cell, origin y + row * cell), rows northwards; None removes it (a plane)."""
+    def save_ortho_surface(self, surface: GroundSurface | None) -> None:
+        """The surface ``orthorectify_frames`` projected onto; None removes it (the frames went onto a plane)."""
         path = self.root / _ORTHO_SURFACE
-        if heights is None:
+        if surface is None:
             path.unlink(missing_ok=True)
             return
-        _save_npz(path, heights=heights, origin=np.asarray(origin, np.float64), cell=np.asarray(cell, np.float64))
+        origin = np.array([surface.x0, surface.y0, surface.cell])
+        _save_npz(path, heights=surface.heights, origin=origin)
 
-    def load_ortho_surface(self) -> dict[str, Any] | None:
-        """``heights``, ``origin`` and ``cell`` as saved, or None (the frames were projected onto a plane)."""
+    def load_ortho_surface(self) -> GroundSurface | None:
+        """The surface ``save_ortho_surface`` kept, or None."""
+        from workers.algorithms.sfm import GroundSurface  # SciPy: loaded only here
+
         path = self.root / _ORTHO_SURFACE
         if not path.exists():
             return None
         with np.load(path) as data:
-            return {"heights": data["heights"], "origin": tuple(data["origin"].tolist()), "cell": float(data["cell"])}
+            x0, y0, cell = (float(v) for v in data["origin"])
+            return GroundSurface(np.asarray(data["heights"]), x0, y0, cell)
 
     def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"
