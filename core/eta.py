@@ -53,7 +53,7 @@ DEFAULT_RATES: dict[str, dict[str, float]] = {
         "detect_features": 2.1,
         "match_features": 0.62,
         "adjust_bundle": 0.86,
-        "orthorectify_frames": 1.35,  # 1.14 onto the tie points' surface; dense stereo took 1.18x that
+        "orthorectify_frames": 1.45,  # 1.14 onto the tie points' surface; dense stereo took 1.27x that
         "compose_mosaic": 0.55,
         "write_report": 0.3,
     },

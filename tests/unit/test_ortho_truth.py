@@ -129,7 +129,7 @@ def test_brighton_strip_is_triangulated_and_orthorectified(tmp_path) -> None:
     # FC300S: 20 mm (35 mm equivalent) at 40 m above the take-off point: 18 mm per photo pixel
     assert abs(report["gsd_original_m"] - 0.018) < 0.15 * 0.018
     assert report["crs"] == "EPSG:32615"
-    # dense stereo between neighbours (measured: 6 pairs, 167 000 points, 57 % of the ground two frames see)
+    # dense stereo between neighbours (measured: 6 pairs, 167 000 points, 55 % of the ground two frames see)
     surface = report["ortho_surface"]
     assert surface["kind"] == "dense" and surface["pairs"] >= 5 and surface["dense_points"] > 50_000, surface
     assert surface["coverage"] > 0.4

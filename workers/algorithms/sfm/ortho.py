@@ -197,40 +197,81 @@ def relief_maps(
 
 # -- A surface from dense stereo ----------------------------------------------------------------------------
 
-MIN_CELL_POINTS = 3  # a cell of the dense surface takes a height from at least this many points ...
-DENSE_OUTLIER_SIGMAS = 5.0  # ... unless it is this many robust sigmas from the median of the 5 x 5 cells around
-DENSE_OUTLIER_FLOOR_M = 0.25  # ... and farther than this (the spread of a clean surface's own cells)
+MIN_CELL_POINTS = 3  # one pair's points give a cell a height when at least this many fall in it
+DENSE_OUTLIER_SIGMAS = 5.0  # a fused cell this many robust sigmas from the median of the 5 x 5 cells around ...
+DENSE_OUTLIER_FLOOR_M = 0.25  # ... and farther than this (the spread of a clean surface's own cells) is dropped
 FILL_SIGMA_CELLS = 3.0  # the dense surface's offset from the base fades over this many cells past its edge
 MAX_DENSE_CELLS = 16_000_000  # a finer grid than this is coarsened
 
 
-def dense_surface(
-    points: np.ndarray, base: GroundSurface, cell: float, smooth_cells: float = 1.0
-) -> tuple[GroundSurface, np.ndarray]:
-    """A surface on a grid of ``cell`` metres from dense stereo points fused over pairs, and its cells they
-    measured, (rows, cols) bool.
+@dataclass(frozen=True)
+class CellGrid:
+    """A regular grid of the world frame: ``rows`` x ``cols`` cells of ``cell`` m, (0, 0) at the south-west
+    corner ``(x0, y0)`` (its cell spans x0 .. x0 + cell), rows northwards."""
 
-    Every cell with ``MIN_CELL_POINTS`` points takes their median height (a wrong match does not pull it, and
-    the pairs that see a cell are fused by it); a cell far from the cells around it is dropped. Cells without a
-    height take the ``base`` surface's (the tie points'), shifted near measured cells by the measured cells'
-    offset from it (a normalised Gaussian of ``FILL_SIGMA_CELLS``, fading to the base where no cell is near),
-    so the two meet without a step; the grid is then smoothed by a Gaussian of ``smooth_cells``. The grid spans
-    the base surface and the points.
+    x0: float
+    y0: float
+    cell: float
+    rows: int
+    cols: int
 
-    points : (N, 3) float64 world points; base : the tie points' surface; cell : metres
-    """
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
+
+def dense_grid(base: GroundSurface, xy: np.ndarray, cell: float) -> CellGrid:
+    """A grid of ``cell`` metres spanning the ``base`` surface and the points ``xy`` (M, 2) (the ground the
+    frames see), coarsened to at most ``MAX_DENSE_CELLS`` cells."""
     rows0, cols0 = base.heights.shape
     lo = np.array([base.x0, base.y0]) - 0.5 * base.cell
     hi = lo + base.cell * np.array([cols0, rows0])
-    if len(pts):
-        lo, hi = np.minimum(lo, pts[:, :2].min(axis=0)), np.maximum(hi, pts[:, :2].max(axis=0))
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if len(xy):
+        lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
     cell = max(float(cell), float(np.sqrt(np.prod(hi - lo) / MAX_DENSE_CELLS)))
     cols, rows = (np.floor((hi - lo) / cell).astype(int) + 1).tolist()
-    measured = _cell_medians(pts, lo, cell, rows, cols)
-    grid_x, grid_y = np.meshgrid(lo[0] + (np.arange(cols) + 0.5) * cell, lo[1] + (np.arange(rows) + 0.5) * cell)
-    below = base.height_at(grid_x, grid_y)
+    return CellGrid(float(lo[0]), float(lo[1]), cell, rows, cols)
+
+
+def cell_medians(points: np.ndarray, grid: CellGrid) -> tuple[np.ndarray, np.ndarray]:
+    """One pair's dense points (N, 3) reduced to the grid: (K,) int64 flat cell indices (row * cols + col) and
+    (K,) float64 median heights of the cells with ``MIN_CELL_POINTS`` or more points (points off the grid and
+    not finite are left out). Reducing each pair as it comes keeps a long flight's points out of memory."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    index = np.floor((pts[:, :2] - [grid.x0, grid.y0]) / grid.cell).astype(np.int64)
+    inside = (index[:, 0] >= 0) & (index[:, 0] < grid.cols) & (index[:, 1] >= 0) & (index[:, 1] < grid.rows)
+    flat = index[inside, 1] * grid.cols + index[inside, 0]
+    return _medians(flat, pts[inside, 2], MIN_CELL_POINTS)
+
+
+def _medians(flat: np.ndarray, values: np.ndarray, min_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct keys of ``flat`` with ``min_count`` or more values, and the median of their values."""
+    order = np.lexsort((values, flat))  # by cell, then by value within it
+    z, flat = values[order], flat[order]
+    cells, starts, counts = np.unique(flat, return_index=True, return_counts=True)
+    enough = counts >= min_count
+    starts, counts = starts[enough], counts[enough]
+    return cells[enough], 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
+
+
+def dense_surface(
+    cells: np.ndarray, heights: np.ndarray, base: GroundSurface, grid: CellGrid, smooth_cells: float = 1.0
+) -> tuple[GroundSurface, np.ndarray]:
+    """A surface on ``grid`` from the cell heights of dense stereo pairs, and its cells they measured,
+    (rows, cols) bool.
+
+    ``cells``, ``heights`` (K,): every pair's ``cell_medians`` together. A cell takes the median over the pairs
+    that measured it (a wrong pair does not pull it); a cell far from the cells around it is dropped. Cells
+    without a height take the ``base`` surface's (the tie points'), shifted near measured cells by the
+    measured cells' offset from it (a normalised Gaussian of ``FILL_SIGMA_CELLS``, fading to the base where no
+    cell is near), so the two meet without a step; the grid is then smoothed by a Gaussian of ``smooth_cells``.
+    """
+    flat = np.full(grid.rows * grid.cols, np.nan)
+    fused, values = _medians(np.asarray(cells, np.int64), np.asarray(heights, np.float64), 1)
+    flat[fused] = values
+    measured = flat.reshape(grid.rows, grid.cols)
+    centre_x = grid.x0 + (np.arange(grid.cols) + 0.5) * grid.cell
+    centre_y = grid.y0 + (np.arange(grid.rows) + 0.5) * grid.cell
+    below = base.height_at(*np.meshgrid(centre_x, centre_y))
     known = np.isfinite(measured)
     known &= ~_off_neighbours(np.where(known, measured, below), known)
     offset = np.where(known, measured - below, 0.0)
@@ -238,28 +279,10 @@ def dense_surface(
     spread = ndimage.gaussian_filter(offset, FILL_SIGMA_CELLS, mode="constant")
     fade = np.clip(weight / 0.25, 0.0, 1.0)  # a lone measured cell shifts its surroundings only partly
     filled = below + np.where(weight > 1e-6, spread / np.maximum(weight, 1e-6), 0.0) * fade
-    heights = np.where(known, measured, filled)
+    heights_out = np.where(known, measured, filled)
     if smooth_cells > 0:
-        heights = ndimage.gaussian_filter(heights, smooth_cells, mode="nearest")
-    surface = GroundSurface(heights, float(lo[0] + 0.5 * cell), float(lo[1] + 0.5 * cell), cell)
-    return surface, known
-
-
-def _cell_medians(pts: np.ndarray, lo: np.ndarray, cell: float, rows: int, cols: int) -> np.ndarray:
-    """(rows, cols) median height of the points in each cell, NaN with fewer than ``MIN_CELL_POINTS``."""
-    out = np.full(rows * cols, np.nan)
-    if len(pts) == 0:
-        return out.reshape(rows, cols)
-    index = np.floor((pts[:, :2] - lo) / cell).astype(np.int64)
-    index = np.clip(index, 0, [cols - 1, rows - 1])
-    flat = index[:, 1] * cols + index[:, 0]
-    order = np.lexsort((pts[:, 2], flat))  # by cell, then by height within it
-    z, flat = pts[order, 2], flat[order]
-    cells, starts, counts = np.unique(flat, return_index=True, return_counts=True)
-    enough = counts >= MIN_CELL_POINTS
-    starts, counts, cells = starts[enough], counts[enough], cells[enough]
-    out[cells] = 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
-    return out.reshape(rows, cols)
+        heights_out = ndimage.gaussian_filter(heights_out, smooth_cells, mode="nearest")
+    return GroundSurface(heights_out, float(centre_x[0]), float(centre_y[0]), grid.cell), known
 
 
 def _off_neighbours(heights: np.ndarray, known: np.ndarray) -> np.ndarray:

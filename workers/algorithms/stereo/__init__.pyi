@@ -19,6 +19,9 @@ from .frame_pairs import (
     PosedPair as PosedPair,
 )
 from .frame_pairs import (
+    ground_samples as ground_samples,
+)
+from .frame_pairs import (
     neighbour_pairs as neighbour_pairs,
 )
 from .frame_pairs import (

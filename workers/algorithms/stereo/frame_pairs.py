@@ -32,7 +32,7 @@ OVERLAP_SAMPLES = (16, 12)  # pixels of a frame traced to the ground to measure 
 
 def overlap_share(camera: Camera, a: Pose, b: Pose, z: float) -> float:
     """Share of frame ``a``'s ground (the plane ``Z = z``) that frame ``b`` sees too, from a grid of pixels."""
-    ground = _ground_samples(camera, a, z)
+    ground = ground_samples(camera, a, z)
     if len(ground) == 0:
         return 0.0
     return float(_seen(camera, b, ground).sum()) / (OVERLAP_SAMPLES[0] * OVERLAP_SAMPLES[1])
@@ -43,9 +43,15 @@ def neighbour_pairs(camera: Camera, poses: dict[int, Pose], z: float) -> list[tu
     averaged), the baseline at least ``MIN_BASE_RATIO`` of the height, each frame with its ``PAIRS_PER_FRAME``
     partners of largest overlap. Sorted."""
     keys = sorted(poses)
+    centres = np.array([poses[k][1] for k in keys]).reshape(-1, 3)
+    # frames farther apart than two footprints' diagonals (a generous bound, for tilted views) share no ground:
+    # only the rest are traced, so a long flight is not N^2 traces
+    reach = 2.0 * np.hypot(camera.width, camera.height) / camera.fx * np.maximum(centres[:, 2] - z, 0.0)
+    gaps = np.linalg.norm(centres[:, None, :2] - centres[None, :, :2], axis=2)
     scores: dict[tuple[int, int], float] = {}
     for n, i in enumerate(keys):
-        for j in keys[n + 1 :]:
+        for m in np.nonzero(gaps[n, n + 1 :] <= np.maximum(reach[n], reach[n + 1 :]))[0] + n + 1:
+            j = keys[m]
             (_, ci), (_, cj) = poses[i], poses[j]
             height = 0.5 * (ci[2] + cj[2]) - z
             if height <= 0 or np.linalg.norm(cj - ci) < MIN_BASE_RATIO * height:
@@ -68,8 +74,9 @@ def view_counts(camera: Camera, poses: dict[int, Pose], points: np.ndarray) -> n
     return counts
 
 
-def _ground_samples(camera: Camera, pose: Pose, z: float) -> np.ndarray:
-    """(M, 3) points of the plane ``Z = z`` seen at a grid of the frame's pixels (rays that meet it in front)."""
+def ground_samples(camera: Camera, pose: Pose, z: float) -> np.ndarray:
+    """(M, 3) points of the plane ``Z = z`` seen at a grid of the frame's pixels (rays that meet it in front):
+    its footprint."""
     R, C = pose
     u, v = np.meshgrid(
         np.linspace(0, camera.width - 1, OVERLAP_SAMPLES[0]), np.linspace(0, camera.height - 1, OVERLAP_SAMPLES[1])
@@ -182,7 +189,7 @@ def posed_pair(camera: Camera, left: Pose, right: Pose, z: float, focal: float) 
     z_axis = z_axis - np.dot(z_axis, x_axis) * x_axis
     z_axis /= np.linalg.norm(z_axis)
     rotation = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis])
-    ground = _ground_samples(camera, left, z)
+    ground = ground_samples(camera, left, z)
     ground = ground[_seen(camera, right, ground)]
     if len(ground) < 4:
         return None
