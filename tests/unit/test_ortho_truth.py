@@ -103,6 +103,20 @@ def test_relief_displacement_goes_away_on_the_dense_surface(ortho, tmp_path) -> 
     assert on_tie < 8.0 and on_dense < on_tie + 0.25, (on_dense, on_tie)  # no worse where both are good
 
 
+def test_without_overlapping_pairs_the_tie_point_surface_stands_in_and_says_why(ortho, tmp_path, monkeypatch) -> None:
+    from workers.algorithms.stereo import frame_pairs
+
+    _, _, ws = ortho
+    job = JobWorkspace(tmp_path / "job")
+    shutil.copytree(ws.root, job.root)
+    monkeypatch.setattr(frame_pairs, "MIN_OVERLAP", 1.01)  # no two frames share that much ground
+    run_stage(job, "mosaic.ortho", "orthorectify_frames", rerun=True)
+    surface = job.load_stage_report("orthorectify_frames")["surface"]
+    assert surface["kind"] == "tie_points" and surface["why"] == "no pair of frames overlaps enough for dense stereo"
+    saved = job.load_ortho_surface()
+    assert saved is not None and list(saved.heights.shape[::-1]) == surface["size"]
+
+
 def _height_rms(flight: TerrainFlight, ws: JobWorkspace) -> float:
     """RMS (m) of the saved ortho surface's heights against the terrain over the cameras' span, 10 m beyond."""
     surface = ws.load_ortho_surface()
