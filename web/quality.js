@@ -157,15 +157,24 @@ function triangulationSection(t) {
 }
 
 /** What an ortho mosaic's frames were projected onto: the tie points' surface (its cell and heights) or a plane. */
+const SURFACE_KINDS = {
+  dense: "a surface from dense stereo between overlapping photos, the tie points' elsewhere",
+  tie_points: "a surface gridded from the tie points",
+  plane: "one plane",
+};
+
 function surfaceFacts(surface) {
-  const tie = surface.kind === "tie_points";
+  const kind = typeof surface.kind === "string" ? surface.kind : "";
   const range = Array.isArray(surface.height_range_m) ? surface.height_range_m : [];
+  const share = typeof surface.coverage === "number" ? `${formatNumber(100 * surface.coverage, 0)} %` : "–";
   return h("div", { class: "quality-block", "data-testid": "ortho-surface" }, h("h3", {}, "Ortho surface"),
     factList([
-      ["Projected onto", tie ? "a surface gridded from the tie points" : "one plane", { "data-testid": "ortho-surface-kind" }],
-      tie ? ["Tie points, cell", `${formatCount(surface.points)} points, ${formatMetres(surface.cell_m)} cells`]
-        : ["Why", typeof surface.why === "string" ? surface.why : "–"],
-      tie ? ["Heights", `${formatNumber(range[0], 2, "m")} to ${formatNumber(range[1], 2, "m")}`] : null,
+      ["Projected onto", SURFACE_KINDS[kind] || "–", { "data-testid": "ortho-surface-kind" }],
+      kind === "dense" ? ["Dense stereo", `${formatCount(surface.pairs)} pairs, ${formatCount(surface.dense_points)} points, `
+        + `${share} of the ground two photos see`, { "data-testid": "ortho-surface-dense" }] : null,
+      kind !== "plane" ? ["Tie points; grid cell", `${formatCount(surface.points)} points, ${formatMetres(surface.cell_m)} cells`] : null,
+      typeof surface.why === "string" ? ["Why", surface.why] : null,
+      kind !== "plane" ? ["Heights", `${formatNumber(range[0], 2, "m")} to ${formatNumber(range[1], 2, "m")}`] : null,
     ].filter(Boolean), { class: "facts wide" }));
 }
 

@@ -380,6 +380,8 @@ def _facts(report: dict[str, Any]) -> str:
     ]
     if isinstance(mosaic.get("seam_visibility"), int | float):
         rows.append(("Seam visibility (1 = invisible)", f"{mosaic['seam_visibility']:.2f}"))
+    if isinstance(report.get("ortho_surface"), dict):
+        rows.append(("Ortho surface", _surface(report["ortho_surface"])))
     triangulation = report.get("triangulation") or {}
     if triangulation:
         rows.append(("Datum", label("datum", str(triangulation.get("datum", "none")))))
@@ -387,6 +389,26 @@ def _facts(report: dict[str, Any]) -> str:
             rows.append(("Check point RMSE", _length(triangulation["checkpoint_rmse_m"])))
     cells = "".join(f"<dt>{esc(k)}</dt><dd>{esc(v)}</dd>" for k, v in rows)
     return f'<dl class="facts">{cells}</dl>'
+
+
+def _surface(surface: dict[str, Any]) -> str:
+    """What the frames were projected onto, in words (``orthorectify_frames``'s ``surface``)."""
+    kind = surface.get("kind")
+    if kind == "dense":
+        share = surface.get("coverage")
+        seen = f"{100 * share:.0f} %" if isinstance(share, int | float) else "–"
+        text = (
+            f"dense stereo between overlapping photos ({_int(surface.get('pairs'))} pairs, "
+            f"{_int(surface.get('dense_points'))} points, {seen} of the ground two photos see; "
+            f"{_length(surface.get('cell_m'))} cells), the tie points' surface elsewhere"
+        )
+    elif kind == "tie_points":
+        text = (
+            f"a surface gridded from {_int(surface.get('points'))} tie points ({_length(surface.get('cell_m'))} cells)"
+        )
+    else:
+        text = "one plane"
+    return f"{text}: {surface['why']}" if isinstance(surface.get("why"), str) else text
 
 
 def _figure(svg: str, caption: str) -> str:

@@ -25,6 +25,7 @@ from workers.records import Alignment, Coverage, Frame, Georef, PairRecord, Reje
 
 if TYPE_CHECKING:  # imported where used: the API imports this module and must not load OpenCV
     from workers.algorithms.cracks import Crack
+    from workers.algorithms.sfm import GroundSurface
     from workers.algorithms.specimen import Surface
 
 
@@ -75,6 +76,7 @@ _CORNERS = "corners.json"
 _CALIBRATION = "calibration.json"
 _CAMERAS = "cameras.json"
 _TIE_POINTS = "tie_points.npz"
+_ORTHO_SURFACE = "ortho_surface.npz"
 _ORIENTATION = "orientation.json"
 _COMPARISON = "comparison.json"
 _REPORT = "report.json"
@@ -346,6 +348,26 @@ class JobWorkspace:
         """(N, 3) float64 world points ``adjust_bundle`` saved."""
         with np.load(self.root / _TIE_POINTS) as data:
             return np.asarray(data["points"])
+
+    def save_ortho_surface(self, surface: GroundSurface | None) -> None:
+        """The surface ``orthorectify_frames`` projected onto; None removes it (the frames went onto a plane)."""
+        path = self.root / _ORTHO_SURFACE
+        if surface is None:
+            path.unlink(missing_ok=True)
+            return
+        origin = np.array([surface.x0, surface.y0, surface.cell])
+        _save_npz(path, heights=surface.heights, origin=origin)
+
+    def load_ortho_surface(self) -> GroundSurface | None:
+        """The surface ``save_ortho_surface`` kept, or None."""
+        from workers.algorithms.sfm import GroundSurface  # SciPy: loaded only here
+
+        path = self.root / _ORTHO_SURFACE
+        if not path.exists():
+            return None
+        with np.load(path) as data:
+            x0, y0, cell = (float(v) for v in data["origin"])
+            return GroundSurface(np.asarray(data["heights"]), x0, y0, cell)
 
     def _ortho_image_file(self, index: int) -> Path:
         return self.root / "ortho" / f"frame_{index:04d}.npy"

@@ -333,6 +333,8 @@ def test_numbers_and_lists_beyond_their_bounds_are_422(
         ({"min_inliers": 10**18}, "options.min_inliers: Input should be less than or equal to 100000"),
         ({"checkpoints": ["g"] * 200_000}, "options.checkpoints: List should have at most 1000 items"),
         ({"min_gps_frames": 10**9}, "options.min_gps_frames: Input should be less than or equal to 10000"),
+        ({"ortho_dense_px": 10**6}, "options.ortho_dense_px: Input should be less than or equal to 4096"),
+        ({"ortho_surface": "lidar"}, "options.ortho_surface: Input should be 'dense', 'tie_points' or 'plane'"),
     ]
     for options, detail in cases:
         response = client.post("/api/jobs", json={"flight_id": flight, "options": options})

@@ -238,7 +238,15 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
     def splice(route: Any) -> None:
         report = route.fetch().json()
         warning = "frame_028.jpg was placed again after the adjustment (it kept 3 of 410 tie points)"
-        surface = {"kind": "tie_points", "points": 8446, "cell_m": 3.1, "height_range_m": [-3.53, 6.17]}
+        surface = {
+            "kind": "dense",
+            "points": 8446,
+            "pairs": 14,
+            "dense_points": 635186,
+            "coverage": 0.9696,
+            "cell_m": 0.342,
+            "height_range_m": [-3.78, 6.36],
+        }
         report.update(mode="ortho", triangulation=TRIANGULATION, warnings=[warning], ortho_surface=surface)
         del report["gps_residual_rms_m"]
         route.fulfill(json=report)
@@ -271,8 +279,13 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
     expect(rows).to_have_count(2)
     expect(rows.first).to_contain_text("0.010, -0.020, 0.030 m")
     expect(page.locator('[data-testid="gcp-row"][data-role="checkpoint"] td').nth(5)).to_have_text("–")
-    expect(page.get_by_test_id("ortho-surface-kind")).to_have_text("a surface gridded from the tie points")
-    expect(page.get_by_test_id("ortho-surface")).to_contain_text("8446 points, 3.10 m cells")
+    expect(page.get_by_test_id("ortho-surface-kind")).to_have_text(
+        "a surface from dense stereo between overlapping photos, the tie points' elsewhere"
+    )
+    expect(page.get_by_test_id("ortho-surface-dense")).to_have_text(
+        "14 pairs, 635186 points, 97 % of the ground two photos see"
+    )
+    expect(page.get_by_test_id("ortho-surface")).to_contain_text("8446 points, 34.2 cm cells")
     page.wait_for_load_state("networkidle")
     _screenshot(page, "quality_ortho")
     watch.assert_clean(live_service.url)

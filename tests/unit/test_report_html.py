@@ -117,6 +117,17 @@ def test_a_report_without_map_or_photos_still_renders() -> None:
     assert all(ET.fromstring(s).tag == f"{SVG}svg" for s in svgs.values())
 
 
+def test_the_page_says_what_the_frames_were_projected_onto() -> None:
+    data = FigureData(50, 40, None, {}, np.zeros((4, 5), np.uint8))
+    dense = {"kind": "dense", "pairs": 14, "dense_points": 635185, "coverage": 0.969, "cell_m": 0.342}
+    page = report_page({"mode": "ortho", "ortho_surface": dense}, data, figures(data), [])
+    assert "dense stereo between overlapping photos (14 pairs, 635,185 points, 97 % of the ground two photos" in page
+    why = "no pair of frames overlaps enough for dense stereo"
+    tie = {"kind": "tie_points", "points": 8446, "cell_m": 3.075, "why": why}
+    page = report_page({"mode": "ortho", "ortho_surface": tie}, data, figures(data), [])
+    assert "a surface gridded from 8,446 tie points" in page and why in page
+
+
 @pytest.mark.realdata
 def test_the_brighton_strips_bend_is_named(tmp_path: Path) -> None:
     """The issue's case: on the real Brighton strip the planar model's GPS residuals are U-shaped."""

@@ -76,7 +76,19 @@ from .gcp import (
     scale_observations as scale_observations,
 )
 from .ortho import (
+    CellGrid as CellGrid,
+)
+from .ortho import (
     GroundSurface as GroundSurface,
+)
+from .ortho import (
+    cell_medians as cell_medians,
+)
+from .ortho import (
+    dense_grid as dense_grid,
+)
+from .ortho import (
+    dense_surface as dense_surface,
 )
 from .ortho import (
     ground_crop as ground_crop,

@@ -193,3 +193,102 @@ def relief_maps(
     seen = camera.project((ground - C) @ R.T)
     shape = (y1 - y0, x1 - x0)
     return seen[:, 0].reshape(shape).astype(np.float32), seen[:, 1].reshape(shape).astype(np.float32)
+
+
+# -- A surface from dense stereo ----------------------------------------------------------------------------
+
+MIN_CELL_POINTS = 3  # one pair's points give a cell a height when at least this many fall in it
+DENSE_OUTLIER_SIGMAS = 5.0  # a fused cell this many robust sigmas from the median of the 5 x 5 cells around ...
+DENSE_OUTLIER_FLOOR_M = 0.25  # ... and farther than this (the spread of a clean surface's own cells) is dropped
+FILL_SIGMA_CELLS = 3.0  # the dense surface's offset from the base fades over this many cells past its edge
+MAX_DENSE_CELLS = 16_000_000  # a finer grid than this is coarsened
+
+
+@dataclass(frozen=True)
+class CellGrid:
+    """A regular grid of the world frame: ``rows`` x ``cols`` cells of ``cell`` m, (0, 0) at the south-west
+    corner ``(x0, y0)`` (its cell spans x0 .. x0 + cell), rows northwards."""
+
+    x0: float
+    y0: float
+    cell: float
+    rows: int
+    cols: int
+
+
+def dense_grid(base: GroundSurface, xy: np.ndarray, cell: float) -> CellGrid:
+    """A grid of ``cell`` metres spanning the ``base`` surface and the points ``xy`` (M, 2) (the ground the
+    frames see), coarsened to at most ``MAX_DENSE_CELLS`` cells."""
+    rows0, cols0 = base.heights.shape
+    lo = np.array([base.x0, base.y0]) - 0.5 * base.cell
+    hi = lo + base.cell * np.array([cols0, rows0])
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if len(xy):
+        lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
+    cell = max(float(cell), float(np.sqrt(np.prod(hi - lo) / MAX_DENSE_CELLS)))
+    cols, rows = (np.floor((hi - lo) / cell).astype(int) + 1).tolist()
+    return CellGrid(float(lo[0]), float(lo[1]), cell, rows, cols)
+
+
+def cell_medians(points: np.ndarray, grid: CellGrid) -> tuple[np.ndarray, np.ndarray]:
+    """One pair's dense points (N, 3) reduced to the grid: (K,) int64 flat cell indices (row * cols + col) and
+    (K,) float64 median heights of the cells with ``MIN_CELL_POINTS`` or more points (points off the grid and
+    not finite are left out). Reducing each pair as it comes keeps a long flight's points out of memory."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    index = np.floor((pts[:, :2] - [grid.x0, grid.y0]) / grid.cell).astype(np.int64)
+    inside = (index[:, 0] >= 0) & (index[:, 0] < grid.cols) & (index[:, 1] >= 0) & (index[:, 1] < grid.rows)
+    flat = index[inside, 1] * grid.cols + index[inside, 0]
+    return _medians(flat, pts[inside, 2], MIN_CELL_POINTS)
+
+
+def _medians(flat: np.ndarray, values: np.ndarray, min_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct keys of ``flat`` with ``min_count`` or more values, and the median of their values."""
+    order = np.lexsort((values, flat))  # by cell, then by value within it
+    z, flat = values[order], flat[order]
+    cells, starts, counts = np.unique(flat, return_index=True, return_counts=True)
+    enough = counts >= min_count
+    starts, counts = starts[enough], counts[enough]
+    return cells[enough], 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
+
+
+def dense_surface(
+    cells: np.ndarray, heights: np.ndarray, base: GroundSurface, grid: CellGrid, smooth_cells: float = 1.0
+) -> tuple[GroundSurface, np.ndarray]:
+    """A surface on ``grid`` from the cell heights of dense stereo pairs, and its cells they measured,
+    (rows, cols) bool.
+
+    ``cells``, ``heights`` (K,): every pair's ``cell_medians`` together. A cell takes the median over the pairs
+    that measured it (a wrong pair does not pull it); a cell far from the cells around it is dropped. Cells
+    without a height take the ``base`` surface's (the tie points'), shifted near measured cells by the
+    measured cells' offset from it (a normalised Gaussian of ``FILL_SIGMA_CELLS``, fading to the base where no
+    cell is near), so the two meet without a step; the grid is then smoothed by a Gaussian of ``smooth_cells``.
+    """
+    flat = np.full(grid.rows * grid.cols, np.nan)
+    fused, values = _medians(np.asarray(cells, np.int64), np.asarray(heights, np.float64), 1)
+    flat[fused] = values
+    measured = flat.reshape(grid.rows, grid.cols)
+    centre_x = grid.x0 + (np.arange(grid.cols) + 0.5) * grid.cell
+    centre_y = grid.y0 + (np.arange(grid.rows) + 0.5) * grid.cell
+    below = base.height_at(*np.meshgrid(centre_x, centre_y))
+    known = np.isfinite(measured)
+    known &= ~_off_neighbours(np.where(known, measured, below), known)
+    offset = np.where(known, measured - below, 0.0)
+    weight = ndimage.gaussian_filter(known.astype(np.float64), FILL_SIGMA_CELLS, mode="constant")
+    spread = ndimage.gaussian_filter(offset, FILL_SIGMA_CELLS, mode="constant")
+    fade = np.clip(weight / 0.25, 0.0, 1.0)  # a lone measured cell shifts its surroundings only partly
+    filled = below + np.where(weight > 1e-6, spread / np.maximum(weight, 1e-6), 0.0) * fade
+    heights_out = np.where(known, measured, filled)
+    if smooth_cells > 0:
+        heights_out = ndimage.gaussian_filter(heights_out, smooth_cells, mode="nearest")
+    return GroundSurface(heights_out, float(centre_x[0]), float(centre_y[0]), grid.cell), known
+
+
+def _off_neighbours(heights: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(rows, cols) bool: measured cells far from the median of the 5 x 5 cells around them (a mismatch)."""
+    if not known.any():
+        return np.zeros_like(known)
+    off = np.abs(heights - ndimage.median_filter(heights, size=5, mode="nearest"))
+    limit = max(DENSE_OUTLIER_SIGMAS * 1.4826 * float(np.median(off[known])), DENSE_OUTLIER_FLOOR_M)
+    return known & (off > limit)

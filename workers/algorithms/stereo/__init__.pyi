@@ -15,6 +15,27 @@ from .dsm import (
 from .dsm import (
     grid_dsm as grid_dsm,
 )
+from .frame_pairs import (
+    PosedPair as PosedPair,
+)
+from .frame_pairs import (
+    ground_samples as ground_samples,
+)
+from .frame_pairs import (
+    neighbour_pairs as neighbour_pairs,
+)
+from .frame_pairs import (
+    overlap_share as overlap_share,
+)
+from .frame_pairs import (
+    posed_pair as posed_pair,
+)
+from .frame_pairs import (
+    reduced_view as reduced_view,
+)
+from .frame_pairs import (
+    view_counts as view_counts,
+)
 from .radiometry import (
     grey8 as grey8,
 )
