@@ -73,14 +73,14 @@ def _cut_pairs(images: list[np.ndarray], masks: list[np.ndarray], boxes: list[Bo
     px around it. ``masks`` (bool, over each frame's box) lose the pixels the other frame keeps.
 
     The cost of cutting between two neighbours is the squared length of the frames' colour difference (8-bit
-    levels) at each, plus 1, as OpenCV's ``GraphCutSeamFinder`` COST_COLOR; but a frame's pixels outside the
-    overlap are tied to it without limit, and a cut next to a pixel outside the overlap costs SEAM_EDGE_COST.
-    OpenCV's finder ties them with 1e4 and charges 1e3, less than crossing a car that one frame shows (a
-    squared difference of 4e4 or more): it cut straight through such a car where the car lay on the shortest
-    way across the overlap (``tests/unit/test_multiband.py``), and through a colour blob of any strength
-    placed so in a bare overlap. The gradient cost (COST_COLOR_GRAD) kept that car whole, but ran the cuts
-    along the ground's edges, where a step across the line shows most (seam visibility 1.03-1.35 against
-    0.70-0.78 with this cost, ``bench/seams.py``)."""
+    levels) at each, plus 1, as OpenCV's ``GraphCutSeamFinder`` COST_COLOR; a frame's pixels outside the
+    overlap are tied to it, and a cut beside a pixel outside the overlap costs SEAM_EDGE_COST. OpenCV's finder
+    (its own terminal weights 1e4 and edge penalty 1e3) cut straight through a car that one frame shows, or a
+    patch of any brightness step, where it lay on the shortest way across an overlap
+    (``tests/unit/test_multiband.py``); with its gradient cost (COST_COLOR_GRAD) the cuts ran along the
+    ground's edges, where a step across the line shows most (seam visibility 1.03-1.04 on budapest and the
+    synthetic flight, cut at 512 px; 0.95-1.35 at 0.1 MP a frame; 0.75 with this cut, ``bench/seams.py``).
+    """
     import maxflow  # type: ignore[import-untyped]
 
     right = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 0]])
