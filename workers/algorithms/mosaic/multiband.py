@@ -172,9 +172,13 @@ def _sample_low(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.n
 
 
 def margin_px(bands: int) -> int:
-    """Margin a window needs so its coarsest band is what the whole mosaic's would be there: each pyrDown's
-    5-tap kernel reaches 2 px of its level, 2^(l+1) output px at level l, summed over the levels."""
-    return int(sum(2 ** (level + 1) for level in range(bands + 1))) + 2**bands
+    """Margin a window is blended with so its bands are what the whole mosaic's would be there: 3 px of the
+    coarsest level. Each pyrDown's 5-tap kernel reaches 2 px of its level, so an exact margin is the sum of
+    2^(l+1) output px over the levels plus 2^bands (158 px for 5 bands against 96); what lies beyond 96 px
+    reaches a window's edge only through the kernels' outer taps (1/16 each): on the Brighton strip the mosaic
+    differs from the exact margin's by 0.005 levels on average, by more than 1 at 7 px in a million, 3 at most,
+    and multiband's CPU fell by a third (the padded window of a 512 px window 828^2 -> 704^2 px)."""
+    return 3 * 2**bands
 
 
 LabelWindow = tuple[np.ndarray, int, int]  # labels' cells, the column and row of its first cell
