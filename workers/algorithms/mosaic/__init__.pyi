@@ -127,7 +127,7 @@ from .homography import (
     spread_subset as spread_subset,
 )
 from .multiband import (
-    SEAM_PX as SEAM_PX,
+    SEAM_FRAME_PX as SEAM_FRAME_PX,
 )
 from .multiband import (
     blend_bands as blend_bands,

@@ -2,11 +2,12 @@
 ``detail::GraphCutSeamFinder`` and ``detail::MultiBandBlender``).
 
 Every mosaic pixel is owned by one frame: the owners come from a graph cut through the overlaps on a
-low-resolution render (the cut runs where the frames' colours and gradients agree, so a car or a tree's
-parallax ends up whole on one side). Each output window is then blended band by band: the frames' Laplacian
-pyramids weighted by the Gaussian pyramids of their ownership, so fine detail switches sharply at the seam
-and coarse brightness blends over a wide band. A window is composed with a margin wide enough for the
-coarsest band, so window edges never show and memory stays that of a window.
+low-resolution render (a frame's footprint about 0.1 MP there, as cv2.Stitcher's; the cut runs where the
+frames' colours agree, so a car or a tree's parallax ends up whole on one side; a max-flow of our own graph,
+PyMaxflow's, since OpenCV's finder cut through such a car). Each output window is then blended band by band:
+the frames' Laplacian pyramids weighted by the Gaussian pyramids of their ownership, so fine detail switches
+sharply at the seam and coarse brightness blends over a wide band. A window is composed with a margin wide
+enough for the coarsest band, so window edges never show and memory stays that of a window.
 """
 
 from __future__ import annotations
@@ -16,9 +17,17 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
+from workers.algorithms.mosaic.alignment import apply_homography, frame_corners
 from workers.algorithms.mosaic.blending import feather_weights, warp_maps
 
-SEAM_PX = 512  # longest side of the render the seams are cut on (cv2.Stitcher cuts at about 0.1 MP)
+SEAM_FRAME_PX = 1e5  # px of a frame's footprint on the render the seams are cut on (cv2.Stitcher's 0.1 MP)
+SEAM_MAX_PX = 2048  # longest side of that render, at most
+SEAM_GAP = 10  # render px beyond a pair's shared box that its graph spans (as OpenCV's GraphCutSeamFinder)
+SEAM_EDGE_COST = 1e6  # a cut between render px not both in the overlap: it would run along a frame's edge
+TIED = 1e12  # a frame's pixel outside the overlap: its own, whatever the cut costs
+SOFT_KERNEL = np.array([0.25, 0.5, 0.25], np.float32)  # ownership smoothed over a render px either side
+
+Box = tuple[int, int, int, int]  # (x0, y0, x1, y1) render px
 
 
 def seam_labels(
@@ -30,50 +39,124 @@ def seam_labels(
     height: int,
 ) -> tuple[np.ndarray, float]:
     """(lh, lw) int32 owner of every pixel of a low-resolution render of the output grid (-1: no frame) and
-    that render's scale (low-res px per output px).
+    that render's scale (low-res px per output px, :func:`seam_scale`).
 
-    Frames are rendered gain-corrected, so the cut sees the colours the mosaic will show.
+    Frames are rendered gain-corrected, each over its own box, so the cut sees the colours the mosaic will
+    show and memory is that of the frames' footprints on the render (about SEAM_FRAME_PX each), not of the
+    render; the overlaps are then cut pair by pair (:func:`_cut_pairs`).
     """
-    r = min(1.0, SEAM_PX / max(width, height))
+    r = seam_scale(sizes, to_frame, width, height)
     lw, lh = max(1, round(width * r)), max(1, round(height * r))
     low_to_out = np.diag([1 / r, 1 / r, 1.0])
     keys = sorted(to_frame)
-    images, masks = [], []
+    boxes, images, masks = [], [], []
     for k in keys:
-        map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
+        x0, y0, x1, y1 = _render_box(to_frame[k] @ low_to_out, sizes[k], lw, lh)
+        map_x, map_y = warp_maps(to_frame[k] @ low_to_out, x0, y0, x1 - x0, y1 - y0)
         inside = feather_weights(map_x, map_y, *sizes[k], 1.0) > 0
-        pixels = np.zeros((lh, lw, 3), np.float32)
+        pixels = np.zeros((*inside.shape, 3), np.float32)
         if inside.any():
             pixels = _sample_low(image_of(k), map_x, map_y) * gains[k].astype(np.float32)[None, None, :]
+        boxes.append((x0, y0, x1, y1))
         images.append(pixels)
-        masks.append(inside.astype(np.uint8) * np.uint8(255))
+        masks.append(inside)
+    _cut_pairs(images, masks, boxes)
     labels = np.full((lh, lw), -1, np.int32)
-    # each frame cut to its own box with that box's corner: the finder builds a graph per overlap of boxes
-    boxes = [_bbox(m) for m in masks]
-    crops = [(images[n][y0:y1, x0:x1], masks[n][y0:y1, x0:x1]) for n, (x0, y0, x1, y1) in enumerate(boxes)]
-    if len(keys) > 1:
-        finder = cv2.detail_GraphCutSeamFinder("COST_COLOR_GRAD")  # type: ignore[attr-defined]
-        found = finder.find(
-            [np.ascontiguousarray(c[0]) for c in crops],
-            [(b[0], b[1]) for b in boxes],
-            [cv2.UMat(np.ascontiguousarray(c[1])) for c in crops],  # type: ignore[call-overload]
-        )
-        owned = [np.asarray(cv2.UMat.get(m) if isinstance(m, cv2.UMat) else m) for m in found]
-    else:
-        owned = [c[1] for c in crops]
     for n in range(len(keys) - 1, -1, -1):  # a pixel left to two frames goes to the first
-        x0, y0, x1, y1 = boxes[n]
-        view = labels[y0:y1, x0:x1]
-        view[owned[n] > 0] = keys[n]
+        _crop(labels, (0, 0, lw, lh), boxes[n])[masks[n]] = keys[n]
     return labels, r
 
 
-def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) of a mask's non-zero pixels; a 1 px box at the origin for an empty one."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if not len(rows):
-        return 0, 0, 1, 1
-    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+def _cut_pairs(images: list[np.ndarray], masks: list[np.ndarray], boxes: list[Box]) -> None:
+    """Cut each overlap between its two frames, pair after pair in order, as OpenCV's ``PairwiseSeamFinder``
+    does: a minimum graph cut (Boykov-Kolmogorov's max-flow, PyMaxflow) over the pair's shared box and SEAM_GAP
+    px around it. ``masks`` (bool, over each frame's box) lose the pixels the other frame keeps.
+
+    The cost of cutting between two neighbours is the squared length of the frames' colour difference (8-bit
+    levels) at each, plus 1, as OpenCV's ``GraphCutSeamFinder`` COST_COLOR; a frame's pixels outside the
+    overlap are tied to it, and a cut beside a pixel outside the overlap costs SEAM_EDGE_COST. OpenCV's finder
+    (its own terminal weights 1e4 and edge penalty 1e3) cut straight through a car that one frame shows, or a
+    patch of any brightness step, where it lay on the shortest way across an overlap
+    (``tests/unit/test_multiband.py``); with its gradient cost (COST_COLOR_GRAD) the cuts ran along the
+    ground's edges, where a step across the line shows most (seam visibility 1.03-1.04 on budapest and the
+    synthetic flight, cut at 512 px; 0.95-1.35 at 0.1 MP a frame; 0.75 with this cut, ``bench/seams.py``).
+    """
+    import maxflow  # type: ignore[import-untyped]
+
+    right = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 0]])
+    down = np.array([[0, 0, 0], [0, 0, 0], [0, 1, 0]])
+    for i in range(len(images)):
+        for j in range(i + 1, len(images)):
+            bi, bj = boxes[i], boxes[j]
+            shared = (max(bi[0], bj[0]), max(bi[1], bj[1]), min(bi[2], bj[2]), min(bi[3], bj[3]))
+            if shared[2] <= shared[0] or shared[3] <= shared[1]:
+                continue
+            if not (_crop(masks[i], bi, shared) & _crop(masks[j], bj, shared)).any():
+                continue
+            union = (min(bi[0], bj[0]), min(bi[1], bj[1]), max(bi[2], bj[2]), max(bi[3], bj[3]))
+            region = (max(shared[0] - SEAM_GAP, union[0]), max(shared[1] - SEAM_GAP, union[1]),
+                      min(shared[2] + SEAM_GAP, union[2]), min(shared[3] + SEAM_GAP, union[3]))  # fmt: skip
+            a, b = _over(masks[i], bi, region), _over(masks[j], bj, region)
+            both = a & b
+            d = _over(images[i], bi, region) - _over(images[j], bj, region)
+            cost = np.where(both, (d * d).sum(axis=2), 0.0)
+            outside = ~both
+            across = np.zeros(both.shape)  # the edge from each px to its right, then lower, neighbour
+            across[:, :-1] = cost[:, :-1] + cost[:, 1:] + 1.0 + SEAM_EDGE_COST * (outside[:, :-1] | outside[:, 1:])
+            along = np.zeros(both.shape)
+            along[:-1] = cost[:-1] + cost[1:] + 1.0 + SEAM_EDGE_COST * (outside[:-1] | outside[1:])
+            graph = maxflow.GraphFloat()
+            nodes = graph.add_grid_nodes(both.shape)
+            graph.add_grid_edges(nodes, weights=across, structure=right, symmetric=True)
+            graph.add_grid_edges(nodes, weights=along, structure=down, symmetric=True)
+            graph.add_grid_tedges(nodes, np.where(a & ~b, TIED, 0.0), np.where(b & ~a, TIED, 0.0))
+            graph.maxflow()
+            to_j = graph.get_grid_segments(nodes)  # the sink's side: j keeps these
+            for n, box, lost in ((i, bi, both & to_j), (j, bj, both & ~to_j)):
+                mine = _inside(region, box)
+                _crop(masks[n], box, mine)[_crop(lost, region, mine)] = False
+
+
+def _inside(region: Box, box: Box) -> Box:
+    """The part of ``region`` inside ``box``."""
+    return max(region[0], box[0]), max(region[1], box[1]), min(region[2], box[2]), min(region[3], box[3])
+
+
+def _crop(array: np.ndarray, box: Box, region: Box) -> np.ndarray:
+    """The view of ``array`` (laid over ``box``) over ``region``, which lies inside the box."""
+    return array[region[1] - box[1] : region[3] - box[1], region[0] - box[0] : region[2] - box[0]]
+
+
+def _over(array: np.ndarray, box: Box, region: Box) -> np.ndarray:
+    """A copy of ``array`` (laid over ``box``) over ``region``, zero (False) where the box does not reach."""
+    out = np.zeros((region[3] - region[1], region[2] - region[0], *array.shape[2:]), array.dtype)
+    part = _inside(region, box)
+    if part[2] > part[0] and part[3] > part[1]:
+        _crop(out, region, part)[...] = _crop(array, box, part)
+    return out
+
+
+def _render_box(to_frame: np.ndarray, size: tuple[int, int], width: int, height: int) -> Box:
+    """Render px box of a frame of ``size`` px (``to_frame``: render px -> its px), a px to spare, clipped to
+    the render, at least one px."""
+    c = apply_homography(np.linalg.inv(to_frame), frame_corners(*size))
+    x0, y0 = np.floor(c.min(axis=0)).astype(int) - 1
+    x1, y1 = np.ceil(c.max(axis=0)).astype(int) + 1
+    x0, y0 = min(max(int(x0), 0), width - 1), min(max(int(y0), 0), height - 1)
+    return x0, y0, max(min(int(x1), width), x0 + 1), max(min(int(y1), height), y0 + 1)
+
+
+def seam_scale(sizes: dict[int, tuple[int, int]], to_frame: dict[int, np.ndarray], width: int, height: int) -> float:
+    """Low-resolution px per output px of the render the seams are cut on: a frame's mean footprint there is
+    SEAM_FRAME_PX (as cv2.Stitcher's seam_est_resol), the whole render at most SEAM_MAX_PX on its longest side."""
+    areas = [abs(_shoelace(apply_homography(np.linalg.inv(to_frame[k]), frame_corners(*sizes[k])))) for k in sizes]
+    per_frame = np.sqrt(SEAM_FRAME_PX / max(float(np.mean(areas)), 1.0)) if areas else 1.0
+    return float(min(1.0, per_frame, SEAM_MAX_PX / max(width, height)))
+
+
+def _shoelace(polygon: np.ndarray) -> float:
+    x, y = polygon[:, 0], polygon[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
 def _sample_low(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
@@ -89,9 +172,13 @@ def _sample_low(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.n
 
 
 def margin_px(bands: int) -> int:
-    """Margin a window needs so its coarsest band is what the whole mosaic's would be there: each pyrDown's
-    5-tap kernel reaches 2 px of its level, 2^(l+1) output px at level l, summed over the levels."""
-    return int(sum(2 ** (level + 1) for level in range(bands + 1))) + 2**bands
+    """Margin a window is blended with so its bands are what the whole mosaic's would be there: 3 px of the
+    coarsest level. Each pyrDown's 5-tap kernel reaches 2 px of its level, so an exact margin is the sum of
+    2^(l+1) output px over the levels plus 2^bands (158 px for 5 bands against 96); what lies beyond 96 px
+    reaches a window's edge only through the kernels' outer taps (1/16 each): on the Brighton strip the mosaic
+    differs from the exact margin's by 0.005 levels on average, by more than 1 at 7 px in a million, 3 at most,
+    and multiband's CPU fell by a third (the padded window of a 512 px window 828^2 -> 704^2 px)."""
+    return 3 * 2**bands
 
 
 LabelWindow = tuple[np.ndarray, int, int]  # labels' cells, the column and row of its first cell
@@ -99,14 +186,14 @@ LabelWindow = tuple[np.ndarray, int, int]  # labels' cells, the column and row o
 
 def label_window(labels: np.ndarray, scale: float, window: tuple[int, int, int, int]) -> LabelWindow:
     """The cells of the low-resolution ``labels`` (at ``scale``) that an output ``window``'s bilinear
-    :func:`ownership` reads, with a cell to spare: (cells, first column, first row). At the labels' edge, the
-    edge cells (which the warp replicates)."""
+    :func:`ownership` reads, with two cells to spare (its smoothing reads one more): (cells, first column,
+    first row). At the labels' edge, the edge cells (which the warp replicates)."""
     x, y, w, h = window
     lh, lw = labels.shape
-    lx0 = min(max(int(np.floor((x + 0.5) * scale - 0.5)) - 1, 0), lw - 1)
-    ly0 = min(max(int(np.floor((y + 0.5) * scale - 0.5)) - 1, 0), lh - 1)
-    lx1 = max(min(int(np.floor((x + w - 0.5) * scale - 0.5)) + 3, lw), lx0 + 1)
-    ly1 = max(min(int(np.floor((y + h - 0.5) * scale - 0.5)) + 3, lh), ly0 + 1)
+    lx0 = min(max(int(np.floor((x + 0.5) * scale - 0.5)) - 2, 0), lw - 1)
+    ly0 = min(max(int(np.floor((y + 0.5) * scale - 0.5)) - 2, 0), lh - 1)
+    lx1 = max(min(int(np.floor((x + w - 0.5) * scale - 0.5)) + 4, lw), lx0 + 1)
+    ly1 = max(min(int(np.floor((y + h - 0.5) * scale - 0.5)) + 4, lh), ly0 + 1)
     return labels[ly0:ly1, lx0:lx1], lx0, ly0
 
 
@@ -114,11 +201,14 @@ def ownership(
     labels: np.ndarray, scale: float, k: int, window: tuple[int, int, int, int], near: LabelWindow | None = None
 ) -> np.ndarray:
     """(h, w) float32 in [0, 1]: where frame ``k`` owns output ``window``, the low-resolution labels brought
-    to full resolution bilinearly (a seam a few output px wide, which the bands then shape). ``near``: the
+    smoothed over a cell either side and brought to full resolution bilinearly (a seam about two cells wide,
+    which the bands then shape; one cell wide showed more on Brighton, 0.72 against 0.70). ``near``: the
     window's :func:`label_window`, when already cut."""
     x, y, w, h = window
     cells, lx0, ly0 = label_window(labels, scale, window) if near is None else near
     owned = (cells == k).astype(np.float32)
+    # smoothed over a render px either side: the finest band switches over about two render px, not one
+    owned = cv2.sepFilter2D(owned, -1, SOFT_KERNEL, SOFT_KERNEL, borderType=cv2.BORDER_REPLICATE)
     # output pixel centre (x + i + 0.5) -> low-res pixel centre coordinate (x + i + 0.5) * scale - 0.5
     M = np.array([[scale, 0.0, (x + 0.5) * scale - 0.5 - lx0], [0.0, scale, (y + 0.5) * scale - 0.5 - ly0]])
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
