@@ -25,8 +25,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -35,26 +33,12 @@ from tests.terrain_scenes import (  # noqa: E402
     level_ground_colour_error,
     make_terrain_flight,
     relief_colour_error,
+    surface_height_rms,
 )
 from workers.pipeline import process_directory, run_stage  # noqa: E402
 from workers.workspace import JobWorkspace  # noqa: E402
 
 SURFACES = ("plane", "tie_points", "dense")
-
-
-def height_rms(flight: TerrainFlight, ws: JobWorkspace) -> float | None:
-    surface = ws.load_ortho_surface()
-    if surface is None:
-        return None
-    world = ws.load_cameras()["world"]
-    shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1]])
-    centres = np.array(flight.centres)
-    x, y = np.meshgrid(
-        np.linspace(centres[:, 0].min() - 10, centres[:, 0].max() + 10, 200),
-        np.linspace(centres[:, 1].min() - 10, centres[:, 1].max() + 10, 150),
-    )
-    error = surface.height_at(x - shift[0], y - shift[1]) - flight.height(x, y)
-    return float(np.sqrt(np.mean(error**2)))
 
 
 def measure(name: str, frames: Path, work: Path, options: dict, flight: TerrainFlight | None) -> None:
@@ -84,7 +68,7 @@ def measure(name: str, frames: Path, work: Path, options: dict, flight: TerrainF
         z0 = ws.load_alignment().ground_z
         truth = ["–", "–", "–"]
         if flight is not None:
-            rms = height_rms(flight, ws)
+            rms = surface_height_rms(flight, ws)
             truth = [
                 "–" if rms is None else f"{rms:.3f}",
                 f"{relief_colour_error(flight, ws.mosaic_path(), z0)[0]:.2f}",

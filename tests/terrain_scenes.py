@@ -15,6 +15,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -25,6 +26,9 @@ from pyproj import Transformer
 from tests.scenes import FIRST_SHOT, SHOT_INTERVAL, _exif_bytes, make_texture
 from tests.sfm_scenes import dji_attitude
 from workers.algorithms.geometry import Camera, rotation_from_vector
+
+if TYPE_CHECKING:
+    from workers.workspace import JobWorkspace
 
 
 @dataclass(frozen=True)
@@ -200,6 +204,23 @@ def relief_colour_error(flight: TerrainFlight, mosaic: Path, z0: float, off_m: f
     """The same where the terrain is more than ``off_m`` above or below the plane ``z0``: the hills and
     hollows, which an orthomosaic projected onto that plane shows displaced by their relief."""
     return ground_colour_error(flight, mosaic, lambda height: np.abs(height - z0) > off_m)
+
+
+def surface_height_rms(flight: TerrainFlight, ws: JobWorkspace) -> float | None:
+    """RMS (m) of the ortho surface the job saved against the terrain, over the cameras' span and 10 m beyond;
+    None when the job projected onto a plane (it saved no surface)."""
+    surface = ws.load_ortho_surface()
+    if surface is None:
+        return None
+    world = ws.load_cameras()["world"]
+    shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1]])
+    centres = np.array(flight.centres)
+    x, y = np.meshgrid(
+        np.linspace(centres[:, 0].min() - 10, centres[:, 0].max() + 10, 200),
+        np.linspace(centres[:, 1].min() - 10, centres[:, 1].max() + 10, 150),
+    )
+    error = surface.height_at(x - shift[0], y - shift[1]) - flight.height(x, y)
+    return float(np.sqrt(np.mean(error**2)))
 
 
 def ground_colour_error(

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from tests.conftest import shared_data
-from tests.terrain_scenes import TerrainFlight, level_ground_colour_error, make_terrain_flight, relief_colour_error
+from tests.terrain_scenes import (
+    TerrainFlight,
+    level_ground_colour_error,
+    make_terrain_flight,
+    relief_colour_error,
+    surface_height_rms,
+)
 from workers.algorithms.geometry import Camera
 from workers.pipeline import process_directory, run_stage
 from workers.workspace import JobWorkspace
@@ -83,7 +89,7 @@ def test_relief_displacement_goes_away_on_the_dense_surface(ortho, tmp_path) -> 
     assert surface["coverage"] > 0.9  # of the ground two or more frames see
     assert surface["height_range_m"][1] - surface["height_range_m"][0] < 3 * flight.relief_m  # no runaway point
     on_dense, pixels = relief_colour_error(flight, ws.mosaic_path(), z0)
-    dense_rms = _height_rms(flight, ws)
+    dense_rms = surface_height_rms(flight, ws)
     other = {}
     for kind in ("tie_points", "plane"):
         job = JobWorkspace(tmp_path / kind)
@@ -94,7 +100,8 @@ def test_relief_displacement_goes_away_on_the_dense_surface(ortho, tmp_path) -> 
         other[kind] = (job.load_report()["ortho_surface"], relief_colour_error(flight, job.mosaic_path(), z0)[0], job)
     tie, on_tie, tie_job = other["tie_points"]
     assert tie["kind"] == "tie_points" and tie["points"] > 1000
-    tie_rms = _height_rms(flight, tie_job)
+    tie_rms = surface_height_rms(flight, tie_job)
+    assert dense_rms is not None and tie_rms is not None
     assert dense_rms < 0.08 and dense_rms < 0.7 * tie_rms, (dense_rms, tie_rms)
     plane, on_plane, plane_job = other["plane"]
     assert plane["kind"] == "plane" and plane_job.load_ortho_surface() is None
@@ -115,21 +122,6 @@ def test_without_overlapping_pairs_the_tie_point_surface_stands_in_and_says_why(
     assert surface["kind"] == "tie_points" and surface["why"] == "no pair of frames overlaps enough for dense stereo"
     saved = job.load_ortho_surface()
     assert saved is not None and list(saved.heights.shape[::-1]) == surface["size"]
-
-
-def _height_rms(flight: TerrainFlight, ws: JobWorkspace) -> float:
-    """RMS (m) of the saved ortho surface's heights against the terrain over the cameras' span, 10 m beyond."""
-    surface = ws.load_ortho_surface()
-    assert surface is not None
-    world = ws.load_cameras()["world"]
-    shift = np.array([world["easting0"] - flight.origin_utm[0], world["northing0"] - flight.origin_utm[1]])
-    centres = np.array(flight.centres)
-    x, y = np.meshgrid(
-        np.linspace(centres[:, 0].min() - 10, centres[:, 0].max() + 10, 200),
-        np.linspace(centres[:, 1].min() - 10, centres[:, 1].max() + 10, 150),
-    )
-    error = surface.height_at(x - shift[0], y - shift[1]) - flight.height(x, y)
-    return float(np.sqrt(np.mean(error**2)))
 
 
 @pytest.mark.realdata
