@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 import rasterio  # noqa: E402
 
 from api.embedded_stack import start_redis, stop, wait_for_port  # noqa: E402
-from tests.conftest import free_port, make_token  # noqa: E402
+from tests.conftest import free_port, make_token, stack_env  # noqa: E402
 from tests.scenes import make_flight  # noqa: E402
 from workers.pipeline import PIPELINES  # noqa: E402
 
@@ -56,17 +56,7 @@ def run(frames_dir: Path, workers: int, scratch: Path) -> dict[str, Any]:
     root = scratch / f"{workers}-workers"
     (root / "logs").mkdir(parents=True)
     redis_url = f"redis://127.0.0.1:{free_port()}/0"
-    env = {
-        **os.environ,
-        "FOTOSKHEMA_DATA_DIR": str(root / "data"),
-        "FOTOSKHEMA_REDIS_URL": redis_url,
-        "FOTOSKHEMA_DATABASE_URL": "",
-        "FOTOSKHEMA_CELERY_QUEUE": "cpu",
-        "FOTOSKHEMA_WORKER_BEACON_SECONDS": "0.5",
-        "PYTHONUNBUFFERED": "1",
-    }
-    env.pop("DATABASE_URL", None)
-    env.pop("REDIS_URL", None)
+    env = stack_env(root / "data", redis_url, FOTOSKHEMA_CELERY_QUEUE="cpu", FOTOSKHEMA_WORKER_BEACON_SECONDS="0.5")
     procs: list[subprocess.Popen[bytes]] = []
     try:
         redis_server = start_redis(redis_url, root / "redis")

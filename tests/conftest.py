@@ -163,6 +163,22 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def stack_env(data_dir: Path, redis_url: str, **extra: str) -> dict[str, str]:
+    """The environment of a service's processes started by a test or a bench: this one's, with its own data
+    folder, Redis and an SQLite database there (the generic DATABASE_URL/REDIS_URL dropped), plus ``extra``."""
+    env = {
+        **os.environ,
+        "FOTOSKHEMA_DATA_DIR": str(data_dir),
+        "FOTOSKHEMA_REDIS_URL": redis_url,
+        "FOTOSKHEMA_DATABASE_URL": "",
+        "PYTHONUNBUFFERED": "1",
+        **extra,
+    }
+    env.pop("DATABASE_URL", None)
+    env.pop("REDIS_URL", None)
+    return env
+
+
 @dataclass
 class LiveService:
     url: str
@@ -214,17 +230,12 @@ def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServi
     data_dir, logs = root / "data", root / "logs"
     logs.mkdir()
     redis_url = f"redis://127.0.0.1:{free_port()}/0"
-    env = {
-        **os.environ,
-        "FOTOSKHEMA_DATA_DIR": str(data_dir),
-        "FOTOSKHEMA_REDIS_URL": redis_url,
-        "FOTOSKHEMA_DATABASE_URL": "",
-        "FOTOSKHEMA_CELERY_QUEUE": "cpu",
-        "FOTOSKHEMA_BASEMAP_URL": "none",  # the tests run offline: a page that asked OpenStreetMap would fail
-        "PYTHONUNBUFFERED": "1",
-    }
-    env.pop("DATABASE_URL", None)
-    env.pop("REDIS_URL", None)
+    env = stack_env(
+        data_dir,
+        redis_url,
+        FOTOSKHEMA_CELERY_QUEUE="cpu",
+        FOTOSKHEMA_BASEMAP_URL="none",  # the tests run offline: a page that asked OpenStreetMap would fail
+    )
     port = free_port()
     token = make_token(env, "admin", admin=True)
     procs: list[subprocess.Popen[bytes] | None] = [start_redis(redis_url, root / "redis")]

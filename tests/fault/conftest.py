@@ -22,7 +22,7 @@ import pytest
 import redis
 
 from core.db import Database, Job, utcnow
-from tests.conftest import _spawn, free_port, make_token
+from tests.conftest import _spawn, free_port, make_token, stack_env
 from tests.scenes import make_flight
 
 T = TypeVar("T")
@@ -229,18 +229,13 @@ def fault_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[FaultStack
     (root / "faults").mkdir()
     (root / "data").mkdir()
     redis_url = f"redis://127.0.0.1:{free_port()}/0"
-    env = {
-        **os.environ,
+    env = stack_env(
+        root / "data",
+        redis_url,
         **LIVENESS_ENV,
-        "FOTOSKHEMA_DATA_DIR": str(root / "data"),
-        "FOTOSKHEMA_REDIS_URL": redis_url,
-        "FOTOSKHEMA_DATABASE_URL": "",
-        "FOTOSKHEMA_CELERY_QUEUE": "cpu",
-        "FOTOSKHEMA_FAULT_DIR": str(root / "faults"),
-        "PYTHONUNBUFFERED": "1",
-    }
-    env.pop("DATABASE_URL", None)
-    env.pop("REDIS_URL", None)
+        FOTOSKHEMA_CELERY_QUEUE="cpu",
+        FOTOSKHEMA_FAULT_DIR=str(root / "faults"),
+    )
     port = free_port()
     stack = FaultStack(
         root, env, redis_url, f"http://127.0.0.1:{port}", make_token(env, "admin", admin=True), root / "faults"

@@ -11,7 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.conftest import _spawn, free_port
+from tests.conftest import _spawn, free_port, stack_env
 from tests.fault.conftest import LIVENESS_ENV, pid_alive, wait_for
 
 pytestmark = pytest.mark.e2e
@@ -25,16 +25,7 @@ def children(pid: int, name: str) -> list[int]:
 
 def test_up_starts_redis_and_the_worker_again_when_they_die(tmp_path: Path) -> None:
     port = free_port()
-    env = {
-        **os.environ,
-        **LIVENESS_ENV,
-        "FOTOSKHEMA_DATA_DIR": str(tmp_path / "data"),
-        "FOTOSKHEMA_REDIS_URL": f"redis://127.0.0.1:{free_port()}/0",
-        "FOTOSKHEMA_DATABASE_URL": "",
-        "PYTHONUNBUFFERED": "1",
-    }
-    env.pop("DATABASE_URL", None)
-    env.pop("REDIS_URL", None)
+    env = stack_env(tmp_path / "data", f"redis://127.0.0.1:{free_port()}/0", **LIVENESS_ENV)
     up = _spawn([sys.executable, "-m", "api.cli", "up", "--port", str(port)], env, tmp_path / "up.log")
 
     def healthy() -> bool:
