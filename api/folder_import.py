@@ -49,7 +49,7 @@ from api.errors import (
 from api.gps_service import store_gps
 from api.limits import MAX_GPS_BYTES
 from api.models import ImportCreate
-from api.uploads import StagedFile, check_photo, commit_staged, display_name, refuse_duplicates
+from api.uploads import StagedFile, check_photo, commit_staged, display_name, file_sha256, refuse_duplicates
 from core.db import Database, Flight, FolderImport, Image, utcnow
 from core.settings import Settings
 from workers.gps_file import GPS_FILE_NAMES
@@ -394,7 +394,7 @@ def _stage(photo: Candidate, temp: Path, copy: bool) -> tuple[str, int]:
             linked = temp.stat()
             if not stat.S_ISREG(linked.st_mode) or linked.st_size != photo.size:
                 raise ApiError("changed since the folder was listed")
-            return _hash(temp), 0
+            return file_sha256(temp), 0
         except OSError:  # another file system, or links not allowed (fs.protected_hardlinks): copy it
             temp.unlink(missing_ok=True)
     digest = hashlib.sha256()
@@ -406,14 +406,6 @@ def _stage(photo: Candidate, temp: Path, copy: bool) -> tuple[str, int]:
             digest.update(block)
             writer.write(block)
     return digest.hexdigest(), temp.stat().st_size
-
-
-def _hash(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        while block := handle.read(COPY_BYTES):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _imported_sources(db: Database, flight_id: int, root: int) -> set[tuple[str, int, int]]:

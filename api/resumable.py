@@ -57,7 +57,7 @@ from api.errors import (
     TooLargeError,
     UnsupportedMediaError,
 )
-from api.uploads import StagedFile, check_photo, commit_staged, display_name, refuse_duplicates
+from api.uploads import StagedFile, check_photo, commit_staged, display_name, file_sha256, refuse_duplicates
 from core.db import Database, Image, Upload, utcnow
 from core.settings import Settings
 from workers.workspace import flight_folder, flight_upload_path, flight_uploads_folder
@@ -76,7 +76,6 @@ PATCH_CONTENT_TYPE = "application/offset+octet-stream"
 MAX_METADATA_CHARS = 4096  # an Upload-Metadata header; the filename is all we use of it
 WRITE_BYTES = 1024 * 1024  # a PATCH body is written (and hashed) in pieces of this size, off the event loop
 IDLE_SECONDS = 60.0  # a PATCH whose body stops arriving this long is treated as cut off (tus: close on timeout)
-HASH_BYTES = 4 * 1024 * 1024  # read size when a finished file is hashed
 
 
 @dataclass(frozen=True)
@@ -429,7 +428,7 @@ async def _finish(db: Database, settings: Settings, state: UploadState, path: Pa
     try:
         checked = await asyncio.gather(  # two cores: the photo check and the hash read the file at once
             run_in_threadpool(check_photo, path, state.filename, settings),
-            run_in_threadpool(_sha256, path),
+            run_in_threadpool(file_sha256, path),
             return_exceptions=True,  # both end before the file may be deleted; the check's refusal comes first
         )
         for outcome in checked:
@@ -443,14 +442,6 @@ async def _finish(db: Database, settings: Settings, state: UploadState, path: Pa
         _delete_upload(db, settings, state)
         raise
     return replace(state, image_id=image.id)
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        while block := handle.read(HASH_BYTES):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _commit(db: Database, settings: Settings, state: UploadState, staged: StagedFile) -> Image:

@@ -103,6 +103,13 @@ async def _stage(upload: UploadFile, folder: Path, settings: Settings) -> Staged
     return StagedFile(name, temp, size, digest.hexdigest(), meta)
 
 
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a stored file (a finished resumable upload, an imported photo), as ``_stage`` hashes a
+    multipart photo while it streams: what duplicates are found by."""
+    with path.open("rb") as handle:
+        return hashlib.file_digest(handle, "sha256").hexdigest()
+
+
 def image_limits(settings: Settings) -> ImageLimits:
     return ImageLimits(
         settings.max_image_pixels,
