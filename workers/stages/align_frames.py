@@ -13,6 +13,7 @@ from workers.algorithms.mosaic import (
     chain_homographies,
     fit_plane_to_map,
     is_plausible,
+    level_plane,
     refine_homographies,
     spanning_tree,
     tie_residuals_px,
@@ -98,21 +99,37 @@ def _adjust(
             positions=positions,
         )
 
-    refined = adjust(initial, {})
+    # Tie points alone first, then the plane levelled (the root frame's tilt taken out of it).
+    levelled = level_plane(adjust(initial, {}), sizes)
+    refined = levelled
     # With GPS, the fixes join the adjustment: their similarity to the plane is fitted to the tie-point
-    # solution, then every frame is pulled towards its fix by the fix's accuracy, and again with the
-    # similarity refitted to that. Each round starts from the chained homographies, not the last
-    # solution: the perspective damping holds to where it starts, and restarting from a bent solution
-    # would let the bend grow (doubled on a 16-frame test strip).
+    # solution, then every frame is pulled towards its fix by the fix's accuracy against the tie points'
+    # own (their RMS here), and again with the similarity refitted to that. Each round starts from the
+    # levelled tie-point solution: the perspective damping holds to where it starts, and restarting from
+    # a solution the fixes have bent would let the bend grow.
+    tie_sigma = _tie_sigma_px(levelled, ties)
     for _ in range(GPS_ROUNDS):
         positions = gps_positions(frames, refined, cfg.gps_sigma_m, cfg.min_gps_frames)
         if not positions:
             break
-        refined = adjust(initial, positions)
+        weighed = {k: (xy, sigma / tie_sigma) for k, (xy, sigma) in positions.items()}
+        refined = adjust(levelled, weighed)
     return root, refined, ties
 
 
 GPS_ROUNDS = 2  # adjustments with GPS inside, each after refitting the GPS similarity to the plane
+MIN_TIE_SIGMA_PX = 0.01  # floor of the tie points' measured sigma: a noiseless synthetic pair would mute GPS
+
+
+def _tie_sigma_px(homs: dict[int, np.ndarray], ties: dict[tuple[int, int], TiePoints]) -> float:
+    """The tie points' sigma per coordinate (px), robustly from their misses: the median of a 2-D normal
+    miss is 1.1774 sigma. The adjustment counts a tie residual as if its sigma were 1 px, so a fix's sigma
+    is divided by this: both then weigh by their accuracy (with 1 px, the 1 m fixes of a strip measured to
+    0.02 px bent it by 4 px at its corners)."""
+    misses = tie_residuals_px(homs, ties)
+    if not misses:
+        return 1.0
+    return max(float(np.median(np.concatenate(list(misses.values())))) / 1.1774, MIN_TIE_SIGMA_PX)
 
 
 def gps_positions(

@@ -16,6 +16,9 @@ from .alignment import (
     is_plausible as is_plausible,
 )
 from .alignment import (
+    level_plane as level_plane,
+)
+from .alignment import (
     refine_homographies as refine_homographies,
 )
 from .alignment import (
