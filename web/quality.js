@@ -41,8 +41,9 @@ export async function showQuality(view, outputs, card, reportPromise) {
   card.replaceChildren(heading(), h("p", { class: "muted" }, "Loading the report…"));
   const report = await (reportPromise || api("GET", url, { signal: view.signal }));
   if (view.signal.aborted) return;
-  card.replaceChildren(heading(report && report.mode, outputs), ...qualityBody(report || {}).filter(Boolean),
-    pictures(outputs));
+  // replaceChildren writes a null as the text "null": every block that may be absent is filtered out
+  card.replaceChildren(...[heading(report && report.mode, outputs), ...qualityBody(report || {}), pictures(outputs)]
+    .filter(Boolean));
 }
 
 function heading(mode, outputs) {
@@ -81,6 +82,9 @@ function qualityBody(report) {
       ["GSD of the photos", formatMetres(report.gsd_original_m), { "data-testid": "gsd-original" }],
       ["GSD of the mosaic", formatMetres(report.gsd_m), { "data-testid": "gsd" }],
       ["GPS residual RMS", formatMetres(report.gps_residual_rms_m), { "data-testid": "gps-residual-rms" }],
+      ...(typeof report.gps_drift_m === "number"
+        ? [["GPS drift along the route", formatMetres(report.gps_drift_m), { "data-testid": "gps-drift" }]]
+        : []),
     ], { class: "facts wide", "data-testid": "quality-facts" }),
     reasons("Rejected frames", rejected, "frames-rejected", "No frame was rejected."),
   ];

@@ -228,6 +228,7 @@ class Georef:
     gps_frames: int | None = None
     gps_residual_rms_m: float | None = None
     gps_residuals_m: dict[str, float] = field(default_factory=dict)  # by frame name
+    gps_drift_m: float | None = None  # largest mean miss over a tenth of the route (georeference.gps_drift_m)
     output_scale: float = 1.0  # output px per plane px (the plane has the reference working copy's px)
 
     def to_json(self) -> JsonDict:
@@ -244,6 +245,7 @@ class Georef:
             "gps_frames": self.gps_frames,
             "gps_residual_rms_m": self.gps_residual_rms_m,
             "gps_residuals_m": dict(self.gps_residuals_m),
+            "gps_drift_m": self.gps_drift_m,
             "output_scale": self.output_scale,
         }
 
@@ -262,6 +264,7 @@ class Georef:
             gps_frames=data.get("gps_frames"),
             gps_residual_rms_m=data.get("gps_residual_rms_m"),
             gps_residuals_m=dict(data.get("gps_residuals_m", {})),
+            gps_drift_m=data.get("gps_drift_m"),
             output_scale=float(data.get("output_scale", 1.0)),
         )
 

@@ -224,6 +224,7 @@ def test_quality_card_of_planar_mosaic(signed_in_page, live_service, planar_job)
     assert len(rms) == 2 and 0 <= rms[0] < 2, f"tie-point RMS shown as {rms}"
     expect(page.get_by_test_id("gsd")).to_contain_text(re.compile(r"\d+(\.\d+)? c?m"))
     expect(page.get_by_test_id("triangulation")).to_have_count(0)  # planar: no photo-triangulation
+    expect(page.get_by_test_id("gps-drift")).to_have_count(0)  # 5 fixes: too few to tell drift from noise
     page.wait_for_load_state("networkidle")
     watch.assert_clean(live_service.url)
 
@@ -247,7 +248,9 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
             "cell_m": 0.342,
             "height_range_m": [-3.78, 6.36],
         }
-        report.update(mode="ortho", triangulation=TRIANGULATION, warnings=[warning], ortho_surface=surface)
+        report.update(
+            mode="ortho", triangulation=TRIANGULATION, warnings=[warning], ortho_surface=surface, gps_drift_m=0.42
+        )
         del report["gps_residual_rms_m"]
         route.fulfill(json=report)
 
@@ -257,6 +260,7 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
     expect(page.get_by_test_id("not-registered")).to_contain_text("frame_028.jpg: too few tie points")
     expect(page.get_by_test_id("rms-reprojection")).to_have_text("0.61 px (1.22 px at full resolution)")
     expect(page.get_by_test_id("gps-residual-rms")).to_have_text("–")  # missing field
+    expect(page.get_by_test_id("gps-drift")).to_have_text("42.0 cm")
     expect(page.get_by_test_id("image-residual-row")).to_have_count(28)
     expect(page.get_by_test_id("image-residual-row").first.locator("td").nth(5)).to_have_text("–")  # GPS residual
     expect(page.get_by_test_id("quality-warning")).to_have_text(
@@ -419,6 +423,29 @@ def test_quality_card_pictures_and_the_printable_report(signed_in_page, live_ser
     ARTIFACTS.mkdir(exist_ok=True)
     report.screenshot(path=str(ARTIFACTS / "report_html.png"), full_page=True)
     report.close()
+
+
+def test_quality_card_without_pictures(signed_in_page, live_service, planar_job) -> None:
+    """A report without its SVG pictures (an older job, or one whose pictures were not drawn): the card has no
+    Pictures block at all, and nothing else in it (no empty frame, no stray text)."""
+    from playwright.sync_api import expect
+
+    page, watch = signed_in_page
+
+    def without_svgs(route: Any) -> None:
+        listing = route.fetch().json()
+        listing["outputs"] = [o for o in listing["outputs"] if not o["name"].endswith(".svg")]
+        route.fulfill(json=listing)
+
+    page.route(re.compile(rf"/api/jobs/{planar_job['id']}/outputs(?:\?|$)"), without_svgs)
+    page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
+    quality = page.get_by_test_id("quality")
+    expect(page.get_by_test_id("frames-used")).to_have_text("5 of 5")
+    expect(page.get_by_test_id("quality-pictures")).to_have_count(0)
+    expect(quality.locator("figure, img")).to_have_count(0)
+    assert "null" not in quality.inner_text() and "undefined" not in quality.inner_text()
+    page.wait_for_load_state("networkidle")
+    watch.assert_clean(live_service.url)
 
 
 def test_the_progress_card_says_the_time_left(signed_in_page, live_service, planar_job) -> None:

@@ -86,7 +86,8 @@ def _fit_gps(
     if isinstance(fit, str):
         return None, fit
     epsg, M, utm = fit
-    residuals = np.linalg.norm(apply_homography(M, centres) - utm, axis=1)
+    misses = apply_homography(M, centres) - utm
+    residuals = np.linalg.norm(misses, axis=1)
     return {
         "epsg": epsg,
         "plane_to_map": M,
@@ -94,4 +95,20 @@ def _fit_gps(
         "gps_frames": len(with_gps),
         "gps_residual_rms_m": float(np.sqrt(np.mean(residuals**2))),
         "gps_residuals_m": {frames[k].name: float(r) for k, r in zip(with_gps, residuals, strict=True)},
+        "gps_drift_m": gps_drift_m(utm, misses),
     }, ""
+
+
+def gps_drift_m(fixes: np.ndarray, misses: np.ndarray) -> float | None:
+    """How far the mosaic strays from the route its GPS fixes draw, the fixes' own noise averaged out: the
+    largest mean miss (m) over any run of a tenth of the frames (at least 3) in order along the route's
+    main axis. ``fixes`` (N, 2) UTM m, ``misses`` (N, 2) m. None below two such runs (too few fixes)."""
+    run = max(3, len(fixes) // 10)
+    if len(fixes) < 2 * run:
+        return None
+    centred = fixes - fixes.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    ordered = misses[np.argsort(centred @ axis)]
+    means = np.cumsum(np.vstack([np.zeros(2), ordered]), axis=0)
+    windows = (means[run:] - means[:-run]) / run
+    return float(np.linalg.norm(windows, axis=1).max())

@@ -54,6 +54,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "gsd_m": geo.gsd_m,  # the mosaic's pixel size
         "gsd_original_m": geo.gsd_m * geo.output_scale * ref.scale if geo.gsd_m else None,  # the photos' own
         "gps_residual_rms_m": geo.gps_residual_rms_m,
+        "gps_drift_m": geo.gps_drift_m,  # the route's largest systematic miss, noise averaged over a tenth of it
         "mosaic": {
             "width": geo.width,
             "height": geo.height,
