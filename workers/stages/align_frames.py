@@ -104,7 +104,7 @@ def _adjust(
     refined = levelled
     # With GPS, the fixes join the adjustment: their similarity to the plane is fitted to the tie-point
     # solution, then every frame is pulled towards its fix by the fix's accuracy against the tie points'
-    # own (their RMS here), and again with the similarity refitted to that. Each round starts from the
+    # own (their measured sigma), and again with the similarity refitted to that. Each round starts from the
     # levelled tie-point solution: the perspective damping holds to where it starts, and restarting from
     # a solution the fixes have bent would let the bend grow.
     tie_sigma = _tie_sigma_px(levelled, ties)

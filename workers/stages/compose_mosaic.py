@@ -149,7 +149,8 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
 def finish(
     ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
 ) -> dict[str, Any]:
-    """Copy the bands into the scratch GeoTIFF, then write ``mosaic.tif`` (COG, RGB + mask)."""
+    """Move the bands into the scratch GeoTIFF (each deleted once copied), then write ``mosaic.tif`` (COG, RGB +
+    mask)."""
     geo = ws.load_georef()
     for key in records:  # bands deleted by a finish that was stopped after the COG: composed again here
         if not (ws.compose_band_path(int(key)).exists() and ws.index_band_path(int(key)).exists()):
@@ -167,6 +168,10 @@ def finish(
                     width = min(cfg.block_px, geo.width - x)
                     write(Window(x, y, width, height), *read(Window(x, 0, width, height)))
                     write_index(Window(x, y, width, height), index(Window(x, 0, width, height)))
+            # a band copied is a band deleted: the disk holds the bands or the scratch mosaic, not both (a finish
+            # stopped before its COG composes the deleted bands again, above)
+            ws.compose_band_path(y).unlink()
+            ws.index_band_path(y).unlink()
             progress(0.15 * (n + 1) / len(records), f"band {n + 1}/{len(records)}")
     progress(0.15, "writing COGs with overviews")  # copying the bands took ~10 % of finish, the mosaic's COG ~70 %
     frames = ws.load_composed_frames()
