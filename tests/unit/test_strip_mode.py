@@ -14,7 +14,7 @@ from workers.workspace import JobWorkspace
 
 def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     strip = make_strip(tmp_path / "frames", 6, (8000, 400), overlap=0.65, gps_noise_m=1.0, seed=3)
-    report = process_directory(tmp_path / "frames", tmp_path / "job", {"mode": "strip"})
+    report = process_directory(tmp_path / "frames", tmp_path / "job", {"mode": "strip", "ccd_segments": 32})
     assert len(report["frames_used"]) == 6 and report["mosaic"]["resolution"] == "native"
     assert report["tie_point_rms_px_original"] < 0.5
     errors = truth_errors(strip, tmp_path / "job")
@@ -22,9 +22,19 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     assert errors["corner_max_px"] < 1.0, errors
     # absolute: a similarity fitted to 6 fixes of 1 m puts centres within 0.82 m RMS (sigma sqrt(4 / 6))
     assert errors["centre_abs_rms_m"] < 2 * 0.82, errors
+    # brightness: each frame's gain undoes part of its exposure (Brown & Lowe's prior holds gains near 1: the
+    # spread of the two together 0.56x the exposures' own here; gains of 1, as before the plan saw the strip's
+    # overlaps, give 1x), and the CCD sub-images' steps are found to about a third of their 3 % size (their
+    # joins every 250 px fall inside JPEG blocks, which smear a step: 10 % on block edges, tests/unit/test_ccd.py)
+    ws = JobWorkspace(tmp_path / "job")
+    composed = ws.load_stage_report("compose_mosaic")
+    assert composed is not None
+    gains = np.array([composed["gains"][path.name][1] for path in strip.paths])
+    assert np.std(gains * strip.frame_gains) < 0.7 * np.std(strip.frame_gains), (gains, strip.frame_gains)
+    error = np.log(composed["ccd_gains"]) - (np.log(strip.ccd_gains) - np.log(strip.ccd_gains).mean())
+    assert np.abs(np.diff(error)).mean() < 0.5 * np.abs(np.diff(np.log(strip.ccd_gains))).mean(), error
     # tie points are measured a pair per part, so a route's pairs spread over workers: a worker that died
     # with two of them leaves only those to redo, and the tie points come out the same
-    ws = JobWorkspace(tmp_path / "job")
     pairs = ws.load_stage_report("match_strips")
     assert pairs is not None and pairs["parts"]["count"] == pairs["pairs_tried"] >= 5
     before = {p.name: dict(np.load(p)) for p in sorted((ws.root / "matches").glob("pair_*.npz"))}

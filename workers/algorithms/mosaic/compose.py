@@ -337,8 +337,12 @@ def gains_and_coverage(
     keys = sorted(to_frame)
     images, masks, radii = [], [], []
     for k in keys:
-        map_x, map_y = warp_maps(to_frame[k] @ low_to_out, 0, 0, lw, lh)
-        inside = feather_weights(map_x, map_y, *sizes[k], 2.0 / r) >= 1.0
+        low_to_frame = to_frame[k] @ low_to_out
+        map_x, map_y = warp_maps(low_to_frame, 0, 0, lw, lh)
+        # 2 low-resolution px in from the frame's edge, in frame px: an output px can be much finer than a
+        # frame px (a strip's native mosaic over its 1/8 working copy), so not 2 / r frame px
+        frame_px = float(np.sqrt(abs(np.linalg.det(low_to_frame[:2, :2] / low_to_frame[2, 2]))))
+        inside = feather_weights(map_x, map_y, *sizes[k], 2.0 * frame_px) >= 1.0
         image = image_of(k)
         images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
         masks.append(inside)
