@@ -1,11 +1,13 @@
 /* A finished job's mosaic on a Leaflet map (global `L`, loaded before the modules), with its layers and their
  * switcher (map-layers.js), the measuring tools and cursor coordinates (map-tools.js), a side-by-side comparison
- * with another job of the flight (swipe.js), and its downloads. */
+ * with another job of the flight (swipe.js), and its downloads. An ortho job's DSM (dsm.tif: the surface its photos
+ * were projected onto) is one more layer, with its legend, the elevation under the cursor and volumes (dsm.js). */
 
 import { api, apiUrl, downloadList, factList, getConfig, h, jobOutputs, jobSignature, onAbort } from "./lib.js";
 import { projectionOf } from "./crs.js";
 import { basemaps, cameraLayer, createPanes, cutlineLayer, footprintLayer, framePreviewUrl, gcpLayer, layerSwitcher } from "./map-layers.js";
 import { coordinatesControl, measureTool } from "./map-tools.js";
+import { followPointer, legendNode } from "./dsm.js";
 import { swipeControl } from "./swipe.js";
 
 // -- Result: map and downloads ------------------------------------------------------------------
@@ -13,6 +15,7 @@ import { swipeControl } from "./swipe.js";
 // The switcher's overlay names (constants: L.control.layers writes them as HTML) and their inputs' test ids
 const LAYER_IDS = {
   Mosaic: "layer-mosaic",
+  "DSM (shaded relief)": "layer-dsm",
   "Frame footprints": "footprints-toggle",
   "Camera centres": "layer-cameras",
   "Ground control points": "layer-gcps",
@@ -38,6 +41,10 @@ export async function showResult(view, job, card, outputs, report) {
   if (signal.aborted) return;
   const byName = Object.fromEntries(outputList.map((o) => [o.name, o]));
   const georeferenced = tilejson.georeferenced !== false;
+  // an ortho job's surface as a DSM: shown when its tiles answer (a job without one has no dsm.tif)
+  const dsmTiles = georeferenced && byName["dsm.tif"]
+    ? await api("GET", `/tiles/${job.id}/dsm/tilejson.json`, { signal }).catch(() => null) : null;
+  if (signal.aborted) return;
   const projection = georeferenced ? projectionOf(reportData && reportData.crs) : null;
 
   const mapNode = h("div", { class: "map", id: "map", "data-testid": "map", role: "region", "aria-label": "Mosaic map" });
@@ -53,7 +60,8 @@ export async function showResult(view, job, card, outputs, report) {
   onAbort(view.signal, () => map.remove());
   controls.append(opacityControl(mosaic));
   if (georeferenced) {
-    controls.append(...mapLayers(view, map, { job, byName, mosaic, bases, projection, signature, mode: reportData && reportData.mode }));
+    const dsm = dsmTiles ? { tilejson: dsmTiles, report: (reportData && reportData.dsm) || {} } : null;
+    controls.append(...mapLayers(view, map, { job, byName, mosaic, bases, projection, signature, dsm, mode: reportData && reportData.mode }));
   } else {
     controls.append(footprintUnavailable(false));
   }
@@ -61,11 +69,15 @@ export async function showResult(view, job, card, outputs, report) {
 }
 
 /** The layers of a georeferenced mosaic, their switcher, and the side-panel blocks of the tools. */
-function mapLayers(view, map, { job, byName, mosaic, bases, projection, signature, mode }) {
-  const tools = measureTool(view, map, { projection });
+function mapLayers(view, map, { job, byName, mosaic, bases, projection, signature, dsm, mode }) {
+  const tools = measureTool(view, map, { projection, dsm: dsm ? { jobId: job.id } : null });
   coordinatesControl(map, projection);
   const overlays = { Mosaic: mosaic };
   const blocks = [tools.node];
+  if (dsm) {
+    overlays["DSM (shaded relief)"] = L.tileLayer(dsm.tilejson.tiles[0], overlayOptions(dsm.tilejson, "DSM: Fotoskhema"));
+    blocks.push(elevationBlock(view, map, job, dsm.report));
+  }
   const footprintsUrl = apiUrl((byName["footprints.geojson"] || {}).url); // fetched from this service only
   if (footprintsUrl) {
     const footprints = footprintLayer(view, { url: footprintsUrl, mode, photoUrl: framePreviewUrl(job.id, signature), tools });
@@ -86,6 +98,26 @@ function mapLayers(view, map, { job, byName, mosaic, bases, projection, signatur
   layerSwitcher(map, bases, overlays, LAYER_IDS);
   blocks.push(swipeControl(view, map, job));
   return blocks;
+}
+
+/** An ortho job's DSM in the side panel: its legend, the elevation under the cursor, its cell and what was measured. */
+function elevationBlock(view, map, job, report) {
+  const readout = h("p", { class: "readout", "data-testid": "point-readout", role: "status", "aria-live": "polite" },
+    "Move over the map to read the elevation.");
+  followPointer(view, map, job.id, true, readout);
+  const measured = typeof report.measured_share === "number" ? `${(100 * report.measured_share).toFixed(0)} % measured by stereo` : "";
+  const cell = typeof report.resolution_m === "number" ? `DSM cell ${report.resolution_m.toFixed(2)} m` : "";
+  return h("div", { class: "control", "data-testid": "elevation" }, h("h3", {}, "Elevation"),
+    legendNode(report.legend, "Heights as the photos' GPS altitudes (or the control points) give them"), readout,
+    h("p", { class: "muted small", "data-testid": "dsm-facts" }, [cell, measured].filter(Boolean).join(" · ")));
+}
+
+/** Leaflet options of a georeferenced overlay's tiles (a DSM over the mosaic): its bounds and zooms, off at first. */
+function overlayOptions(tilejson, attribution) {
+  const [west, south, east, north] = tilejson.bounds;
+  const maxzoom = Number.isFinite(tilejson.maxzoom) ? tilejson.maxzoom : 22;
+  return { bounds: insetBounds(west, south, east, north), noWrap: true, tileSize: 256, attribution, pane: "mosaic", zIndex: 2,
+    minNativeZoom: Number.isFinite(tilejson.minzoom) ? tilejson.minzoom : 0, maxNativeZoom: maxzoom, maxZoom: maxzoom + 8 };
 }
 
 /** The tile layer's bounds, pulled in by a hair: a tile that only touches the mosaic's edge would
@@ -154,6 +186,8 @@ function footprintUnavailable(georeferenced) {
 // The mosaic's downloads, in this order; the footprints only when the job wrote them.
 const DOWNLOADS = {
   "mosaic.tif": { label: "Mosaic (Cloud-Optimized GeoTIFF)", testid: "download-cog" },
+  "dsm.tif": { label: "DSM, the surface the photos were projected onto (Cloud-Optimized GeoTIFF, m)", testid: "download-dsm", optional: true },
+  "dsm_mask.tif": { label: "DSM cells measured (1) or interpolated (2)", testid: "download-dsm-mask", optional: true },
   "report.json": { label: "Processing report", testid: "download-report" },
   "footprints.geojson": { label: "Frame footprints", testid: "download-footprints", optional: true },
   "cutlines.geojson": { label: "Cut lines (each frame's region)", testid: "download-cutlines", optional: true },

@@ -255,6 +255,46 @@ def write_rgb_cog(
         scratch.unlink(missing_ok=True)
 
 
+DSM_NODATA = -9999.0  # dsm.tif's nodata value
+
+
+def write_dsm(
+    paths: tuple[Path, Path, Path, Path],
+    height: np.ndarray,
+    state: np.ndarray,
+    relief: np.ndarray,
+    *,
+    transform: tuple[float, ...],
+    epsg: int,
+    compression: str,
+    description: str,
+) -> None:
+    """A DSM's three COGs: ``paths`` = (dsm.tif, dsm_mask.tif, the shaded relief's view COG, its scratch file).
+    ``height`` (H, W) float32 m, NaN where none (written as ``DSM_NODATA``); ``state`` (H, W) uint8 per cell,
+    0 no data, 1 measured, 2 filled; ``relief`` (H, W, 3) uint8, the picture the viewer tiles."""
+    dsm, mask, view, scratch = paths
+    write_array_cog(
+        dsm,
+        height.astype(np.float32),
+        transform=transform,
+        epsg=epsg,
+        nodata=DSM_NODATA,
+        compression=compression,
+        description=description,
+    )
+    write_array_cog(
+        mask,
+        state.astype(np.uint8),
+        transform=transform,
+        epsg=epsg,
+        nodata=0,
+        resampling="nearest",
+        compression=compression,
+        description="per DSM cell: 0 no data, 1 measured, 2 filled",
+    )
+    write_rgb_cog(view, scratch, relief, state > 0, crs=epsg, transform=transform, compression=compression)
+
+
 def provenance_tags() -> dict[str, str]:
     """``TIFFTAG_SOFTWARE`` and ``TIFFTAG_DATETIME`` of a raster written now."""
     try:

@@ -535,6 +535,11 @@ class JobWorkspace:
         """The DSM as colour-ramped, hillshaded RGB COG (read by the tile routes)."""
         return self.root / _DSM_VIEW
 
+    def remove_dsm(self) -> None:
+        """Remove the DSM's files (an ortho job run again onto the plane has none)."""
+        for path in (self.dsm_path(), self.dsm_mask_path(), self.dsm_view_path()):
+            path.unlink(missing_ok=True)
+
     def disparity_view_path(self) -> Path:
         """The disparity as colour-ramped RGB COG in the left view's pixels (read by the tile routes)."""
         return self.root / _DISPARITY_VIEW
@@ -636,6 +641,7 @@ class JobWorkspace:
             "orthorectify_frames": lambda: [
                 r / _GEOREF,
                 *(self._ortho_image_file(k) for k in self.load_alignment().homographies),
+                *self._ortho_dsm_outputs(),
             ],
             "compose_mosaic": lambda: [r / _COVERAGE, self.mosaic_path(), r / _FRAME_INDEX],
             "write_report": lambda: [r / _REPORT, r / _REPORT_HTML],
@@ -718,6 +724,12 @@ class JobWorkspace:
 
     def remove_parts(self, stage: str) -> None:
         shutil.rmtree(self._parts_dir(stage), ignore_errors=True)
+
+    def _ortho_dsm_outputs(self) -> list[Path]:
+        """An ortho job's DSM files: written when it kept a surface and has map coordinates."""
+        if not (self.root / _ORTHO_SURFACE).exists() or not self.load_georef().georeferenced:
+            return []
+        return [self.dsm_path(), self.dsm_mask_path(), self.dsm_view_path()]
 
     def _surface_outputs(self) -> list[Path]:
         """What ``build_dsm`` writes for the pair's geometry: a DSM (rpc), a depth map (rig) or nothing more."""

@@ -128,6 +128,36 @@ def test_a_dsm_is_an_asset_with_its_own_grid(client: TestClient, api_settings, j
     assert "dsm.tif" in {o["name"] for o in client.get(f"/api/jobs/{job_id}/outputs").json()["outputs"]}
 
 
+def test_a_mosaic_jobs_dsm_answers_the_dsm_routes(client: TestClient, api_settings, job_id: int) -> None:
+    """An ortho job's DSM (what ``orthorectify_frames`` writes, through the same ``write_dsm``) is served by the
+    stereo DEM's DSM routes: its tiles, the elevation under a point, a volume; a mosaic without one is 404, saying
+    which jobs have one."""
+    from pyproj import Transformer
+
+    from workers.raster_io import write_dsm
+
+    missing = client.get(f"/tiles/{job_id}/dsm/tilejson.json")
+    assert missing.status_code == 404 and "only an ortho job" in missing.json()["detail"]
+    assert client.get(f"/tiles/{job_id}/disparity/tilejson.json").status_code == 404  # a stereo DEM's alone
+    ws = job_workspace(api_settings.data_dir, job_id)
+    height = np.full((40, 60), 12.5, np.float32)
+    height[:, :10] = np.nan  # 5 m along the west edge without a value
+    state = np.where(np.isfinite(height), 1, 0).astype(np.uint8)
+    paths = (ws.dsm_path(), ws.dsm_mask_path(), ws.dsm_view_path(), ws.view_scratch_path("dsm"))
+    relief = np.full((40, 60, 3), 90, np.uint8)
+    place = {"transform": (0.5, 0.0, 271_000.0, 0.0, -0.5, 3_294_000.0), "epsg": 32615}
+    write_dsm(paths, height, state, relief, **place, compression="deflate", description="a test DSM")
+    assert client.get(f"/tiles/{job_id}/dsm/tilejson.json").json()["georeferenced"] is True
+    to_lonlat = Transformer.from_crs(32615, 4326, always_xy=True)
+    lon, lat = to_lonlat.transform(271_015.0, 3_293_990.0)
+    point = client.get(f"/tiles/{job_id}/dsm/point", params={"lon": lon, "lat": lat}).json()
+    assert point["elevation_m"] == pytest.approx(12.5) and point["state"] == "measured"
+    square = [to_lonlat.transform(x, y) for x, y in ((271_010, 3_293_990), (271_020, 3_293_990), (271_020, 3_293_985))]
+    square.append(to_lonlat.transform(271_010, 3_293_985))
+    volume = client.post(f"/tiles/{job_id}/dsm/volume", json={"polygon": square, "base": 10.0}).json()
+    assert volume["volume_above_m3"] == pytest.approx(50 * 2.5, rel=0.05) and volume["crs"] == "EPSG:32615"
+
+
 def test_stac_needs_a_finished_mosaic_and_its_owner(client: TestClient, api_settings, job_id: int) -> None:
     bob = user_headers(client, "bob")
     assert client.get(f"/api/jobs/{job_id}/stac.json", headers=bob).status_code == 404

@@ -31,10 +31,9 @@ from workers.algorithms.stereo import (
 )
 from workers.config import StereoDemConfig
 from workers.pipeline import PipelineError
-from workers.raster_io import write_array_cog, write_rgb_cog
+from workers.raster_io import write_array_cog, write_dsm
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
-NODATA = -9999.0  # dsm.tif's nodata value
 DEFAULT_FILL_CELLS = 64  # DSM holes are filled at most this many cells from a height (max_fill_m unset)
 
 
@@ -80,36 +79,16 @@ def _dsm(ws: JobWorkspace, cfg: StereoDemConfig, info: dict[str, Any], progress:
         raise PipelineError(f"cannot grid the DSM: {exc}") from None
     progress(0.8, "writing")
     has = dsm.state != NO_DATA
-    what = "DSM, heights above the WGS 84 ellipsoid (m), from a stereo pair"
-    write_array_cog(
-        ws.dsm_path(),
-        dsm.height,
-        transform=dsm.transform,
-        epsg=epsg,
-        nodata=NODATA,
-        compression=cfg.cog_compression,
-        description=what,
-    )
-    write_array_cog(
-        ws.dsm_mask_path(),
-        dsm.state,
-        transform=dsm.transform,
-        epsg=epsg,
-        nodata=NO_DATA,
-        resampling="nearest",
-        compression=cfg.cog_compression,
-        description="per DSM cell: 0 no data, 1 measured, 2 filled",
-    )
     lo, hi = value_range(dsm.height, has)
-    relief = shaded_relief(dsm.height, resolution, lo, hi, TERRAIN)
-    write_rgb_cog(
-        ws.dsm_view_path(),
-        ws.view_scratch_path("dsm"),
-        relief,
-        has,
-        crs=epsg,
+    write_dsm(
+        (ws.dsm_path(), ws.dsm_mask_path(), ws.dsm_view_path(), ws.view_scratch_path("dsm")),
+        dsm.height,
+        dsm.state,
+        shaded_relief(dsm.height, resolution, lo, hi, TERRAIN),
         transform=dsm.transform,
+        epsg=epsg,
         compression=cfg.cog_compression,
+        description="DSM, heights above the WGS 84 ellipsoid (m), from a stereo pair",
     )
     cells = int(has.sum())
     return {

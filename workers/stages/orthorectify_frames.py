@@ -9,7 +9,10 @@ instead of being displaced by their relief. With ``ortho_surface: dense`` (the d
 where frames overlap: neighbouring pairs are rectified through the adjusted cameras (``stereo.posed_pair``),
 matched by semi-global matching at a reduced size (``disparity.match_pair``), triangulated, and their points
 fused into a finer grid (``sfm.dense_surface``); the tie-point surface fills the rest. The surface used is
-saved (``ortho_surface.npz``) and the report's ``surface`` says which it was. Frames that see the horizon
+saved (``ortho_surface.npz``) and the report's ``surface`` says which it was; on a georeferenced job it is also
+written as ``dsm.tif`` (float32 m in the GPS altitudes' datum, on the mosaic's grid coarsened to about the
+surface's cell) with ``dsm_mask.tif`` (1 measured, 2 interpolated) and the shaded relief the viewer tiles, only
+where it rests on measurements (``sfm.surface_raster``). Frames that see the horizon
 are cut below it (and beyond ``max_ground_range`` flying heights), since ground far away is smeared over a
 huge area by the projection.
 """
@@ -27,26 +30,35 @@ from workers.algorithms.disparity import match_pair
 from workers.algorithms.geometry import Camera
 from workers.algorithms.mosaic import MAX_OUTPUT_PIXELS, map_grid, output_size_problem, pixel_grid
 from workers.algorithms.sfm import (
+    SURFACE_INTERPOLATED,
+    SURFACE_MEASURED,
     GroundSurface,
+    RasterGrid,
     cell_medians,
     dense_grid,
     dense_surface,
     ground_crop,
     ground_surface,
     relief_maps,
+    surface_raster,
 )
 from workers.algorithms.stereo import (
+    TERRAIN,
     disparity_range,
     grey8,
     ground_samples,
+    legend,
     neighbour_pairs,
     posed_pair,
     reduced_view,
     remap_pair,
+    shaded_relief,
+    value_range,
     view_counts,
 )
 from workers.config import MosaicConfig
 from workers.pipeline import PipelineError
+from workers.raster_io import write_dsm
 from workers.records import Alignment, Georef, RejectedFrame
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
@@ -70,7 +82,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         raise PipelineError(f"the cameras are not above the ground plane at {z0:.1f} m; set ground_elevation_m")
     plane_from_ground = np.diag([1.0 / gsd, -1.0 / gsd, 1.0])  # plane px: x east, y south
     maps = camera.undistort_maps(ideal)
-    surface, surface_note = _surface(ws, cfg, camera, poses, z0, progress)
+    surface, measured, surface_note = _surface(ws, cfg, camera, poses, z0, progress)
     ws.save_ortho_surface(surface)
     start = DENSE_SHARE if surface_note["kind"] == "dense" else 0.0  # of the progress bar
     homographies: dict[int, np.ndarray] = {}
@@ -116,6 +128,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     if problem:
         raise PipelineError(problem)
     ws.save_georef(grid)
+    footprints = [_footprint(H, sizes[k], gsd) for k, H in homographies.items()]
+    dsm = _dsm(ws, cfg, (surface, measured), footprints, grid, adjusted["world"])
     progress(1.0, f"{len(homographies)} frames at {gsd * 100:.1f} cm/px")
     return {
         "frames": len(homographies),
@@ -123,22 +137,24 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "gsd_m": gsd,
         "ground_z": z0,
         "surface": surface_note,
+        "dsm": dsm,
     }
 
 
 def _surface(
     ws: JobWorkspace, cfg: MosaicConfig, camera: Camera, poses: dict[int, Pose], z0: float, progress: ProgressFn
-) -> tuple[GroundSurface | None, dict[str, Any]]:
-    """The surface frames are projected onto, and what the report says of it."""
+) -> tuple[GroundSurface | None, np.ndarray | None, dict[str, Any]]:
+    """The surface frames are projected onto, the cells of it dense stereo measured (None: no dense surface),
+    and what the report says of it."""
     if cfg.ortho_surface == "plane":
-        return None, {"kind": "plane", "why": "options.ortho_surface is 'plane'"}
+        return None, None, {"kind": "plane", "why": "options.ortho_surface is 'plane'"}
     points = ws.load_tie_points()
     surface = ground_surface(points)
     if surface is None:
-        return None, {"kind": "plane", "why": f"only {len(points)} tie points: too few for a surface"}
+        return None, None, {"kind": "plane", "why": f"only {len(points)} tie points: too few for a surface"}
     note = {"kind": "tie_points", "points": len(points), **_grid_note(surface)}
     if cfg.ortho_surface != "dense":
-        return surface, note
+        return surface, None, note
     return _dense(ws, cfg.ortho_dense_px, camera, poses, z0, (surface, note), points, progress)
 
 
@@ -151,14 +167,14 @@ def _dense(
     base: tuple[GroundSurface, dict[str, Any]],
     points: np.ndarray,
     progress: ProgressFn,
-) -> tuple[GroundSurface, dict[str, Any]]:
-    """The tie points' surface refined by dense stereo between neighbouring frames, and its report; the tie
-    points' surface (``base``) and why, when no pair overlaps or matches."""
+) -> tuple[GroundSurface, np.ndarray | None, dict[str, Any]]:
+    """The tie points' surface refined by dense stereo between neighbouring frames, its cells stereo measured,
+    and its report; the tie points' surface (``base``), None and why, when no pair overlaps or matches."""
     started = time.perf_counter()
     surface, note = base
     pairs = neighbour_pairs(camera, poses, z0)
     if not pairs:
-        return surface, {**note, "why": "no pair of frames overlaps enough for dense stereo"}
+        return surface, None, {**note, "why": "no pair of frames overlaps enough for dense stereo"}
     scale = min(1.0, matched_px / max(camera.width, camera.height))
     gsd = float(np.median([C[2] - z0 for _, C in poses.values()])) / (camera.fx * scale)
     footprints = [ground_samples(camera, poses[k], z0)[:, :2] for k in sorted({k for p in pairs for k in p})]
@@ -172,18 +188,77 @@ def _dense(
         heights.append(part[1])
         matched, count = matched + int(len(dense) > 0), count + len(dense)
     if count == 0:
-        return surface, {**note, "why": f"none of {len(pairs)} overlapping pairs of frames matched for dense stereo"}
+        why = f"none of {len(pairs)} overlapping pairs of frames matched for dense stereo"
+        return surface, None, {**note, "why": why}
     refined, measured = dense_surface(np.concatenate(cells), np.concatenate(heights), surface, grid)
-    return refined, {
-        "kind": "dense",
-        "points": len(points),
-        "pairs": matched,
-        "pairs_overlapping": len(pairs),
-        "dense_points": count,
-        "coverage": _coverage(refined, measured, camera, poses),
-        "matched_px": max(round(camera.width * scale), round(camera.height * scale)),
-        "seconds": round(time.perf_counter() - started, 2),
-        **_grid_note(refined),
+    return (
+        refined,
+        measured,
+        {
+            "kind": "dense",
+            "points": len(points),
+            "pairs": matched,
+            "pairs_overlapping": len(pairs),
+            "dense_points": count,
+            "coverage": _coverage(refined, measured, camera, poses),
+            "matched_px": max(round(camera.width * scale), round(camera.height * scale)),
+            "seconds": round(time.perf_counter() - started, 2),
+            **_grid_note(refined),
+        },
+    )
+
+
+def _footprint(H: np.ndarray, size: tuple[int, int], gsd: float) -> np.ndarray:
+    """(4, 2) world x, y of an orthorectified frame's corners on the ground plane (plane px: x east, y south)."""
+    w, h = size
+    plane = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float) @ H.T
+    return plane[:, :2] / plane[:, 2:] * [gsd, -gsd]
+
+
+def _dsm(
+    ws: JobWorkspace,
+    cfg: MosaicConfig,
+    surface: tuple[GroundSurface | None, np.ndarray | None],
+    footprints: list[np.ndarray],
+    grid: Georef,
+    world: dict[str, Any],
+) -> dict[str, Any] | None:
+    """Write the surface as the job's DSM on the mosaic's grid, coarsened to about the surface's cell, and say
+    what it holds; None (and no DSM left from an earlier run) without a surface or map coordinates."""
+    heights, measured = surface
+    if heights is None or not grid.georeferenced or grid.epsg is None or grid.gsd_m is None:
+        ws.remove_dsm()
+        return None
+    step = max(1, round(heights.cell / grid.gsd_m))
+    cell = step * grid.gsd_m
+    west, north = grid.transform[2], grid.transform[5]
+    raster = RasterGrid(
+        west - world["easting0"], north - world["northing0"], cell, -(-grid.height // step), -(-grid.width // step)
+    )
+    height, state = surface_raster(heights, measured, ws.load_tie_points(), footprints, raster)
+    has = state > 0
+    lo, hi = value_range(height, has)
+    write_dsm(
+        (ws.dsm_path(), ws.dsm_mask_path(), ws.dsm_view_path(), ws.view_scratch_path("dsm")),
+        height,
+        state,
+        shaded_relief(height, cell, lo, hi, TERRAIN),
+        transform=(cell, 0.0, west, 0.0, -cell, north),
+        epsg=grid.epsg,
+        compression="deflate" if cfg.cog_compression == "jpeg" else cfg.cog_compression,
+        description="DSM, heights in the photos' GPS altitude datum (m), the surface the ortho frames went onto",
+    )
+    cells = int(has.sum())
+    return {
+        "surface": "dsm",
+        "epsg": grid.epsg,
+        "resolution_m": round(cell, 4),
+        "size": [int(state.shape[1]), int(state.shape[0])],
+        "cells": cells,
+        "measured_share": round(int((state == SURFACE_MEASURED).sum()) / max(cells, 1), 4),
+        "filled_share": round(int((state == SURFACE_INTERPOLATED).sum()) / max(cells, 1), 4),
+        "height_range_m": [round(float(height[has].min()), 3), round(float(height[has].max()), 3)] if cells else None,
+        "legend": {"units": "m", "stops": legend(lo, hi, TERRAIN)},
     }
 
 

@@ -73,7 +73,9 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     if cfg.mode == "ortho":
         report["triangulation"] = ws.load_cameras()["report"]
         # what the frames were projected onto: the tie points' surface, or the plane (and why)
-        report["ortho_surface"] = (ws.load_stage_report("orthorectify_frames") or {}).get("surface")
+        ortho = ws.load_stage_report("orthorectify_frames") or {}
+        report["ortho_surface"] = ortho.get("surface")
+        report["dsm"] = ortho.get("dsm")  # the surface as dsm.tif (None on the plane or without map coordinates)
     report["warnings"] = _warnings(report)
     ws.save_report(report)
     progress(0.5, "report pictures")

@@ -76,10 +76,22 @@ from .gcp import (
     scale_observations as scale_observations,
 )
 from .ortho import (
+    SURFACE_INTERPOLATED as SURFACE_INTERPOLATED,
+)
+from .ortho import (
+    SURFACE_MEASURED as SURFACE_MEASURED,
+)
+from .ortho import (
+    SURFACE_NO_DATA as SURFACE_NO_DATA,
+)
+from .ortho import (
     CellGrid as CellGrid,
 )
 from .ortho import (
     GroundSurface as GroundSurface,
+)
+from .ortho import (
+    RasterGrid as RasterGrid,
 )
 from .ortho import (
     cell_medians as cell_medians,
@@ -98,6 +110,9 @@ from .ortho import (
 )
 from .ortho import (
     relief_maps as relief_maps,
+)
+from .ortho import (
+    surface_raster as surface_raster,
 )
 from .reconstruction import (
     Reconstruction as Reconstruction,

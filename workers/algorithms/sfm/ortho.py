@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import interpolate, ndimage, spatial
 
@@ -292,3 +293,88 @@ def _off_neighbours(heights: np.ndarray, known: np.ndarray) -> np.ndarray:
     off = np.abs(heights - ndimage.median_filter(heights, size=5, mode="nearest"))
     limit = max(DENSE_OUTLIER_SIGMAS * 1.4826 * float(np.median(off[known])), DENSE_OUTLIER_FLOOR_M)
     return known & (off > limit)
+
+
+# -- The surface as a raster (an ortho job's DSM) ------------------------------------------------------------
+
+SURFACE_NO_DATA, SURFACE_MEASURED, SURFACE_INTERPOLATED = 0, 1, 2  # the states of ``surface_raster``'s cells
+
+
+@dataclass(frozen=True)
+class RasterGrid:
+    """A north-up raster of the world frame: ``rows`` x ``cols`` square cells of ``cell`` m, its north-west
+    corner at world ``(x0, y0)``; cell (row, col) is centred on (x0 + (col + 0.5) cell, y0 - (row + 0.5) cell)."""
+
+    x0: float
+    y0: float
+    cell: float
+    rows: int
+    cols: int
+
+    def px(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) world x, y -> (N, 2) float raster (col, row), cell corners on whole numbers."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        return np.column_stack([(xy[:, 0] - self.x0) / self.cell, (self.y0 - xy[:, 1]) / self.cell])
+
+
+def surface_raster(
+    surface: GroundSurface,
+    measured: np.ndarray | None,
+    points: np.ndarray,
+    footprints: list[np.ndarray],
+    grid: RasterGrid,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The surface sampled on ``grid`` where it rests on measurements, with the state of each cell.
+
+    A cell has a height where it is *measured* (a dense cell of ``measured`` covers its centre, or a tie point
+    of ``points`` falls in it) or *interpolated*: inside the convex hull of the tie points and seen by two or
+    more frames (``footprints``: each frame's ground, a convex (K, 2) world x, y polygon), where stereo could
+    reach. Elsewhere (the surface's edge, extrapolated from the nearest heights) it has none.
+
+    surface : the surface frames were projected onto; measured : (rows, cols) bool over ``surface.heights``, the
+    cells dense stereo measured, or None (a tie points' surface); points : (N, 3) adjusted tie points.
+    Returns (grid.rows, grid.cols) float32 heights, NaN where none, and uint8 states (``SURFACE_NO_DATA``,
+    ``SURFACE_MEASURED``, ``SURFACE_INTERPOLATED``).
+    """
+    shape = (grid.rows, grid.cols)
+    cols, rows = np.meshgrid(np.arange(grid.cols), np.arange(grid.rows))
+    x, y = grid.x0 + (cols + 0.5) * grid.cell, grid.y0 - (rows + 0.5) * grid.cell
+    hit = np.zeros(shape, bool)
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    at = np.floor(grid.px(pts[:, :2])).astype(np.int64)
+    on = (at[:, 0] >= 0) & (at[:, 0] < grid.cols) & (at[:, 1] >= 0) & (at[:, 1] < grid.rows)
+    hit[at[on, 1], at[on, 0]] = True
+    if measured is not None:
+        j = np.rint((x - surface.x0) / surface.cell).astype(np.int64)
+        i = np.rint((y - surface.y0) / surface.cell).astype(np.int64)
+        inside = (i >= 0) & (i < measured.shape[0]) & (j >= 0) & (j < measured.shape[1])
+        hit[inside] |= measured[i[inside], j[inside]]
+    support = _convex_fill(grid.px(pts[:, :2]), shape) if len(pts) >= 3 else np.zeros(shape, bool)
+    support &= _seen_twice([grid.px(f) for f in footprints], shape)
+    state = np.where(hit, SURFACE_MEASURED, np.where(support, SURFACE_INTERPOLATED, SURFACE_NO_DATA)).astype(np.uint8)
+    heights = np.where(state > 0, surface.height_at(x, y), np.nan).astype(np.float32)
+    return heights, state
+
+
+def _convex_fill(px: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the cells whose centres lie in the convex hull of raster points ``px`` (N, 2)."""
+    mask = np.zeros(shape, np.uint8)
+    if len(px) < 3 or not np.isfinite(px).all():
+        return mask.astype(bool)
+    hull = cv2.convexHull(np.round((px - 0.5) * 16).astype(np.int32))  # 4 fractional bits, centres on whole px
+    cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def _seen_twice(polygons: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the cells inside two or more of the convex raster polygons, each (K, 2)."""
+    counts = np.zeros(shape, np.int32)
+    for poly in polygons:
+        lo = np.clip(np.floor(poly.min(axis=0)).astype(int) - 1, 0, None)
+        hi = np.minimum(np.ceil(poly.max(axis=0)).astype(int) + 1, [shape[1], shape[0]])
+        if np.any(hi <= lo):
+            continue
+        part = _convex_fill(poly - lo, (int(hi[1] - lo[1]), int(hi[0] - lo[0])))
+        counts[lo[1] : hi[1], lo[0] : hi[0]] += part
+    return counts >= 2
