@@ -236,8 +236,9 @@ STATES = {0: None, 1: "measured", 2: "filled"}  # dsm_mask.tif's codes
 def dsm_point(
     job_id: JobId, lon: Longitude, lat: Latitude, db: DbDep, settings: SettingsDep, tiler: TilerDep
 ) -> dict[str, Any]:
-    """The DSM's elevation (m above the WGS 84 ellipsoid) at a longitude and latitude, and whether that cell was
-    measured or filled; ``elevation_m`` null outside the DSM or where it has none."""
+    """The DSM's elevation (m: above the WGS 84 ellipsoid for a stereo DEM; in the datum of the photos' GPS
+    altitudes, or of the control points, for an ortho job) at a longitude and latitude, and whether that cell
+    was measured or filled; ``elevation_m`` null outside the DSM or where it has none."""
     ws = job_workspace(settings.data_dir, job_id)
     elevation = tiler.sample(_stereo_file(db, settings, job_id, ws.dsm_path(), "DSM").identity, lon, lat, True)
     state = None
