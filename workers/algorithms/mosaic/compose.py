@@ -146,19 +146,47 @@ def compose_block_multiband(
     if len(blend) == 1:
         k, edge, rho2, _ = blend[0]
         return _single_frame(image_of(k), to_frame[k], window, gains[k], edge[centre], rho2, vignette, columns, k)
-    images, weights = [], []
+    images, weights, corners = [], [], []
+    index, best = np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32)
     for k, edge, rho2, own in blend:
-        valid = (edge > 0).astype(np.float32)
+        valid = edge > 0
+        reach = valid & ((own > 0) | orphans) if own is not None else valid & orphans
+        bx0, by0, bx1, by1 = _reach_box(reach, m, 2**bands)
+        part = (slice(by0, by1), slice(bx0, bx1))
+        box = (x - m + bx0, y - m + by0, bx1 - bx0, by1 - by0)
         # a pixel the low-resolution cut left to no frame (at the render's edge) still gets its covering frames
-        weights.append(valid * np.float32(1e-3) + (valid * own if own is not None else 0.0))
-        warped = _warp(image_of(k), to_frame[k], padded)
-        images.append(_brightened(warped, gains[k], to_frame[k], padded, rho2, vignette, columns, k))
-    blended = blend_bands(images, weights, bands)[centre]
+        weight = valid[part].astype(np.float32) * (np.float32(1e-3) + (own[part] if own is not None else 0.0))
+        warped = _warp(image_of(k), to_frame[k], box)
+        radius = None if rho2 is None else rho2[part]
+        images.append(_brightened(warped, gains[k], to_frame[k], box, radius, vignette, columns, k))
+        weights.append(weight)
+        corners.append((bx0, by0))
+        # the frame index: the frame of largest weight (the first of equal ones)
+        cx0, cy0, cx1, cy1 = max(bx0, m), max(by0, m), min(bx1, m + w), min(by1, m + h)
+        if cx1 > cx0 and cy1 > cy0:
+            mine = weight[cy0 - by0 : cy1 - by0, cx0 - bx0 : cx1 - bx0]
+            better = mine > best[cy0 - m : cy1 - m, cx0 - m : cx1 - m]
+            index[cy0 - m : cy1 - m, cx0 - m : cx1 - m][better] = k
+            best[cy0 - m : cy1 - m, cx0 - m : cx1 - m][better] = mine[better]
+    blended = blend_bands(images, weights, bands, corners, (w + 2 * m, h + 2 * m))[centre]
     bgr = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
     bgr[~covered] = 0
-    index = np.array([k for k, *_ in blend], np.int32)[np.argmax([wt[centre] for wt in weights], axis=0)]
     index[~covered] = -1
     return bgr[..., ::-1], covered, index
+
+
+def _reach_box(reach: np.ndarray, margin: int, align: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the part of a padded window a frame's blend is built over: where it has weight
+    (``reach``) and ``margin`` px around, its corner on a multiple of ``align`` px, its far side too or at the
+    window's edge (:func:`~workers.algorithms.mosaic.multiband.blend_bands`). Past the margin its pyramids'
+    weight is that of the window's own margin (:func:`~workers.algorithms.mosaic.multiband.margin_px`): on the
+    Brighton strip a blended frame's part was 57 % of the window on average."""
+    rows, cols = np.flatnonzero(reach.any(axis=1)), np.flatnonzero(reach.any(axis=0))
+    height, width = reach.shape
+    x0, y0 = max(0, (cols[0] - margin) // align * align), max(0, (rows[0] - margin) // align * align)
+    x1 = min(width, -(-(cols[-1] + 1 + margin) // align) * align)
+    y1 = min(height, -(-(rows[-1] + 1 + margin) // align) * align)
+    return int(x0), int(y0), int(x1), int(y1)
 
 
 def _single_frame(

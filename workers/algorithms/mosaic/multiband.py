@@ -236,26 +236,42 @@ def ownership(
     return cv2.warpAffine(owned, M, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
 
 
-def blend_bands(images: list[np.ndarray], weights: list[np.ndarray], bands: int) -> np.ndarray:
+def blend_bands(
+    images: list[np.ndarray],
+    weights: list[np.ndarray],
+    bands: int,
+    corners: list[tuple[int, int]] | None = None,
+    size: tuple[int, int] | None = None,
+) -> np.ndarray:
     """Multiband blend of (h, w, 3) float32 ``images`` by (h, w) float32 ``weights``: band l of the result is
     the weights' Gaussian level l average of the images' Laplacian band l. Returns (h, w, 3) float32.
 
+    With ``corners`` and ``size`` (w, h), each image and its weight covers only part of the result, from its
+    corner (x, y): a frame's pyramids are built over the part its weight reaches, not the whole window. Each
+    corner is a multiple of 2^bands px and each part ends at the result's edge or is a multiple of 2^bands px
+    wide and high, so its levels fall on the result's levels' px.
+
     OpenCV's array operations throughout: NumPy's broadcasting of a weight over 3 channels cost as much as
     the pyramids."""
-    h, w = images[0].shape[:2]
-    acc: list[np.ndarray] = []
-    wsum: list[np.ndarray] = []
-    for image, weight in zip(images, weights, strict=True):
+    w, h = (images[0].shape[1], images[0].shape[0]) if size is None else size
+    corners = [(0, 0)] * len(images) if corners is None else corners
+    shapes = [(h, w)]
+    for _ in range(bands):
+        shapes.append(((shapes[-1][0] + 1) // 2, (shapes[-1][1] + 1) // 2))
+    acc = [np.zeros((*shape, 3), np.float32) for shape in shapes]
+    wsum = [np.zeros(shape, np.float32) for shape in shapes]
+    for image, weight, (cx, cy) in zip(images, weights, corners, strict=True):
+        if cx % 2**bands or cy % 2**bands:
+            raise ValueError(f"a part's corner ({cx}, {cy}) is not on the coarsest level's px")
         lap = _laplacian_pyramid(image, bands)
         gauss = _gaussian_pyramid(weight, bands)
         for level, (band, g) in enumerate(zip(lap, gauss, strict=True)):
-            contribution = cv2.multiply(band, cv2.merge([g, g, g]))
-            if level == len(acc):
-                acc.append(contribution)
-                wsum.append(g.copy())
-            else:
-                cv2.add(acc[level], contribution, dst=acc[level])
-                cv2.add(wsum[level], g, dst=wsum[level])
+            x0, y0 = cx >> level, cy >> level
+            view = (slice(y0, y0 + g.shape[0]), slice(x0, x0 + g.shape[1]))
+            if acc[level][view].shape[:2] != g.shape:
+                raise ValueError("a part neither ends at the result's edge nor spans whole coarsest px")
+            cv2.add(acc[level][view], cv2.multiply(band, cv2.merge([g, g, g])), dst=acc[level][view])
+            cv2.add(wsum[level][view], g, dst=wsum[level][view])
     levels = []
     for a, s in zip(acc, wsum, strict=True):
         inverse = cv2.divide(1.0, np.maximum(s, np.float32(1e-6)))
