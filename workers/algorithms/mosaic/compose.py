@@ -111,8 +111,9 @@ def compose_block_multiband(
     columns: Columns | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`compose_block` with seams and multiband blending (:mod:`~workers.algorithms.mosaic.multiband`):
-    each frame that owns part of the window or its margin (``labels`` at ``label_scale``), warped over both,
-    blended band by band by its ownership. Same returns; the frame index is the seam's owner.
+    each frame that owns part of the window or its margin (``labels`` at ``label_scale``), warped over the part
+    of both that its ownership reaches with the margin (:func:`_reach_box`), blended band by band by its
+    ownership. Same returns; the frame index is the seam's owner.
 
     Only the owners are blended: a frame that reaches the window but owns nothing near it adds only where no
     owner covers a pixel (the low-resolution cut's edge). A window whose margin one frame owns alone is that
