@@ -67,6 +67,34 @@ def test_the_cut_goes_around_a_difference_of_any_strength(step: int) -> None:
     assert len(np.unique(owners)) == 1, np.unique(owners, return_counts=True)
 
 
+@pytest.mark.parametrize("samples", [1, 3])
+def test_the_cut_goes_around_fine_detail_the_frames_disagree_on(samples: int, monkeypatch) -> None:
+    """Fine stripes that one frame shows shifted by half a period (parallax or a misregistration of fine
+    detail), on the cut's way across a noisy overlap: at one sample a render px the stripes' phase can agree
+    at every sample (here it does, by construction: a period of two render px, zero at their centres) and the
+    cut ran through them, a step in the mosaic; the mean over 3 x 3 samples a px sees them and goes around."""
+    from workers.algorithms.mosaic import multiband
+
+    monkeypatch.setattr(multiband, "SEAM_SUPERSAMPLE", samples)
+    width, height = 1800, 1200  # frames 1200 x 900: a render px is about 3.3 px of theirs
+    texture = make_texture(height, width, seed=4)
+    images = {0: texture[:900, :1200].copy(), 1: texture[180:1080, 450:1650].copy()}
+    noise = np.random.default_rng(1).normal(0, 8, images[1].shape)  # the frames disagree a little everywhere
+    images[1] = np.clip(images[1] + noise, 0, 255).astype(np.uint8)
+    sizes = {0: (1200, 900), 1: (1200, 900)}
+    to_frame = {0: np.array([[1.0, 0, -0.5], [0, 1.0, -0.5], [0, 0, 1]])}
+    to_frame[1] = np.array([[1.0, 0, -450.5], [0, 1.0, -180.5], [0, 0, 1]])
+    r = multiband.seam_scale(sizes, to_frame, width, height)
+    x0, x1, y0, y1 = 845, 995, 495, 585  # output px, on the way the cut takes without the stripes
+    stripes = np.cos(np.pi * r * (np.arange(x0, x1) + 0.5))  # zero at the render's px centres ((i + 0.5) / r)
+    images[0][y0:y1, x0:x1] = np.round(128 + 60 * stripes).astype(np.uint8)[None, :, None]
+    images[1][y0 - 180 : y1 - 180, x0 - 450 : x1 - 450] = np.round(128 - 60 * stripes).astype(np.uint8)[None, :, None]
+    labels, scale = seam_labels(images.__getitem__, sizes, to_frame, {0: np.ones(3), 1: np.ones(3)}, width, height)
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    owners = labels[np.floor((ys + 0.5) * scale).astype(int), np.floor((xs + 0.5) * scale).astype(int)]
+    assert len(np.unique(owners)) == (2 if samples == 1 else 1), np.unique(owners, return_counts=True)
+
+
 def test_windows_never_show() -> None:
     """Composed window by window or in one piece, the same pixels: each window's margin holds its bands."""
     images, sizes, to_frame, boxes, gains = _two_frames(moving_object=False)
@@ -97,7 +125,7 @@ def test_a_multiband_mosaic_shows_the_ground_where_it_lies(tmp_path) -> None:
     flight = make_flight(tmp_path / "frames", n_frames=6, rotation_deg=10, scale_jitter=0.05, gps=True, seed=4)
     report = process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 1024, "blend": "multiband"})
     assert len(report["frames_used"]) == 6 and report["config"]["blend"] == "multiband"
-    assert 0 < report["mosaic"]["seam_visibility"] < 1.0  # the cut lines show less than the ground does (0.67)
+    assert 0 < report["mosaic"]["seam_visibility"] < 0.8  # the cut lines show less than the ground does (0.69)
     assert ground_colour_error(flight, tmp_path / "job" / "mosaic.tif") < 10.0
     ws = JobWorkspace(tmp_path / "job")
     assert "cutlines.geojson" in ws.outputs()

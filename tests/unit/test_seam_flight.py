@@ -71,6 +71,6 @@ def test_exposure_and_fall_off_are_evened_out(seam_flight) -> None:
     report = JobWorkspace(jobs["multiband"]).load_stage_report("compose_mosaic")
     found = report["vignetting"]
     assert abs(found["c1"] + found["c2"] - sum(flight.vignette)) < 0.1, found
-    # the cut lines show less than the ground 16 px beside them does (0.88 here; on bench/seams.py's 1280 x 960
-    # flight 0.75, where OpenCV's stitcher measures 0.84 and the former gradient-cost cut 1.04)
-    assert report["seam_visibility"] < 1.0
+    # the cut lines show less than the ground 16 px beside them does (0.86 here, 0.88 with one colour sample a
+    # render px; on bench/seams.py's 1280 x 960 flight 0.78, where OpenCV's stitcher measures 0.82)
+    assert report["seam_visibility"] < 0.95

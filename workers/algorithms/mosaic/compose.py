@@ -111,8 +111,9 @@ def compose_block_multiband(
     columns: Columns | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`compose_block` with seams and multiband blending (:mod:`~workers.algorithms.mosaic.multiband`):
-    each frame that owns part of the window or its margin (``labels`` at ``label_scale``), warped over both,
-    blended band by band by its ownership. Same returns; the frame index is the seam's owner.
+    each frame that owns part of the window or its margin (``labels`` at ``label_scale``), warped over the part
+    of both that its ownership reaches with the margin (:func:`_reach_box`), blended band by band by its
+    ownership. Same returns; the frame index is the seam's owner.
 
     Only the owners are blended: a frame that reaches the window but owns nothing near it adds only where no
     owner covers a pixel (the low-resolution cut's edge). A window whose margin one frame owns alone is that
@@ -125,40 +126,71 @@ def compose_block_multiband(
     centre = (slice(m, m + h), slice(m, m + w))
     near = label_window(labels, label_scale, padded)
     present = set(np.unique(near[0]).tolist())
-    found: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]] = []  # frame, edge, rho2, ownership
+    found: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # frame, edge distance, ownership
     for k, (bx0, by0, bx1, by1) in boxes.items():
         if min(bx1, x + w + m) <= max(bx0, x - m) or min(by1, y + h + m) <= max(by0, y - m):
             continue
-        edge, rho2 = _edge_and_radius(to_frame[k], padded, *sizes[k], vignette != (0.0, 0.0))
+        # only where the frame is matters here (> 0), not how far inside: the warped distance, the cheapest
+        edge = _edge_distance(to_frame[k], padded, *sizes[k])
         if not cv2.countNonZero((edge > 0).view(np.uint8)):
             continue
-        found.append((k, edge, rho2, ownership(labels, label_scale, k, padded, near) if k in present else None))
+        found.append((k, edge, ownership(labels, label_scale, k, padded, near) if k in present else None))
     covered = np.zeros((h, w), bool)
     owned = np.zeros((h + 2 * m, w + 2 * m), np.float32)
-    for _, edge, _, own in found:
+    for _, edge, own in found:
         covered |= edge[centre] > 0
         if own is not None:
             owned += own * (edge > 0)
-    orphans = (owned == 0) & np.any([edge > 0 for _, edge, _, _ in found], axis=0) if found else owned > 0
-    blend = [f for f in found if (f[3] is not None and f[3].any()) or (orphans & (f[1] > 0)).any()]
+    orphans = (owned == 0) & np.any([edge > 0 for _, edge, _ in found], axis=0) if found else owned > 0
+    blend = [f for f in found if (f[2] is not None and f[2].any()) or (orphans & (f[1] > 0)).any()]
     if not blend:
         return np.zeros((h, w, 3), np.uint8), covered, np.full((h, w), -1, np.int32)
+    vignetted = vignette != (0.0, 0.0)
     if len(blend) == 1:
-        k, edge, rho2, _ = blend[0]
+        k, edge, _ = blend[0]
+        rho2 = _radius2(to_frame[k], window, *sizes[k]) if vignetted else None
         return _single_frame(image_of(k), to_frame[k], window, gains[k], edge[centre], rho2, vignette, columns, k)
-    images, weights = [], []
-    for k, edge, rho2, own in blend:
-        valid = (edge > 0).astype(np.float32)
+    images, weights, corners = [], [], []
+    index, best = np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32)
+    for k, edge, own in blend:
+        valid = edge > 0
+        reach = valid & ((own > 0) | orphans) if own is not None else valid & orphans
+        bx0, by0, bx1, by1 = _reach_box(reach, m, 2**bands)
+        part = (slice(by0, by1), slice(bx0, bx1))
+        box = (x - m + bx0, y - m + by0, bx1 - bx0, by1 - by0)
         # a pixel the low-resolution cut left to no frame (at the render's edge) still gets its covering frames
-        weights.append(valid * np.float32(1e-3) + (valid * own if own is not None else 0.0))
-        warped = _warp(image_of(k), to_frame[k], padded)
-        images.append(_brightened(warped, gains[k], to_frame[k], padded, rho2, vignette, columns, k))
-    blended = blend_bands(images, weights, bands)[centre]
+        weight = valid[part].astype(np.float32) * (np.float32(1e-3) + (own[part] if own is not None else 0.0))
+        warped = _warp(image_of(k), to_frame[k], box)
+        rho2 = _radius2(to_frame[k], box, *sizes[k]) if vignetted else None
+        images.append(_brightened(warped, gains[k], to_frame[k], box, rho2, vignette, columns, k))
+        weights.append(weight)
+        corners.append((bx0, by0))
+        # the frame index: the frame of largest weight (the first of equal ones)
+        cx0, cy0, cx1, cy1 = max(bx0, m), max(by0, m), min(bx1, m + w), min(by1, m + h)
+        if cx1 > cx0 and cy1 > cy0:
+            mine = weight[cy0 - by0 : cy1 - by0, cx0 - bx0 : cx1 - bx0]
+            better = mine > best[cy0 - m : cy1 - m, cx0 - m : cx1 - m]
+            index[cy0 - m : cy1 - m, cx0 - m : cx1 - m][better] = k
+            best[cy0 - m : cy1 - m, cx0 - m : cx1 - m][better] = mine[better]
+    blended = blend_bands(images, weights, bands, corners, (w + 2 * m, h + 2 * m))[centre]
     bgr = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
     bgr[~covered] = 0
-    index = np.array([k for k, *_ in blend], np.int32)[np.argmax([wt[centre] for wt in weights], axis=0)]
     index[~covered] = -1
     return bgr[..., ::-1], covered, index
+
+
+def _reach_box(reach: np.ndarray, margin: int, align: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the part of a padded window a frame's blend is built over: where it has weight
+    (``reach``) and ``margin`` px around, its corner on a multiple of ``align`` px, its far side too or at the
+    window's edge (:func:`~workers.algorithms.mosaic.multiband.blend_bands`). Past the margin its pyramids'
+    weight is that of the window's own margin (:func:`~workers.algorithms.mosaic.multiband.margin_px`): on the
+    Brighton strip a blended frame's part was 57 % of the window on average."""
+    rows, cols = np.flatnonzero(reach.any(axis=1)), np.flatnonzero(reach.any(axis=0))
+    height, width = reach.shape
+    x0, y0 = max(0, (cols[0] - margin) // align * align), max(0, (rows[0] - margin) // align * align)
+    x1 = min(width, -(-(cols[-1] + 1 + margin) // align) * align)
+    y1 = min(height, -(-(rows[-1] + 1 + margin) // align) * align)
+    return int(x0), int(y0), int(x1), int(y1)
 
 
 def _single_frame(
@@ -176,9 +208,7 @@ def _single_frame(
     covered = edge > 0
     if not covered.any():  # it owns only some of the margin
         return np.zeros((*covered.shape, 3), np.uint8), covered, np.full(covered.shape, -1, np.int32)
-    m = (rho2.shape[0] - window[3]) // 2 if rho2 is not None else 0
-    radius = None if rho2 is None else rho2[m : m + window[3], m : m + window[2]]
-    pixels = _brightened(_warp(image, to_frame, window), gain, to_frame, window, radius, vignette, columns, k)
+    pixels = _brightened(_warp(image, to_frame, window), gain, to_frame, window, rho2, vignette, columns, k)
     bgr = np.clip(pixels + 0.5, 0, 255).astype(np.uint8)
     bgr[~covered] = 0
     return bgr[..., ::-1], covered, np.where(covered, np.int32(k), np.int32(-1))
@@ -254,14 +284,26 @@ def _edge_and_radius(
     """
     if not with_radius:
         return _edge_distance(to_frame, window, width, height), None
+    fine = _coarse_maps(to_frame, window)
+    edge = edge_distance(fine[..., 0], fine[..., 1], width, height)
+    return edge, radius2(fine[..., 0], fine[..., 1], width, height)
+
+
+def _radius2(to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int) -> np.ndarray:
+    """(h, w) float32 rho^2 in the frame of each pixel of an output ``window``, as :func:`_edge_and_radius`'s."""
+    fine = _coarse_maps(to_frame, window)
+    return radius2(fine[..., 0], fine[..., 1], width, height)
+
+
+def _coarse_maps(to_frame: np.ndarray, window: tuple[int, int, int, int]) -> np.ndarray:
+    """(h, w, 2) float32 frame coordinates of an output ``window``'s pixels, computed every FEATHER_STEP_PX
+    output px and interpolated bilinearly in between."""
     x, y, w, h = window
     step = FEATHER_STEP_PX
     coarse = cv2.merge(warp_maps_strided(to_frame, x, y, w // step + 2, h // step + 2, step))
     # fine pixel (i, j) sits at coarse position (i / step, j / step)
     zoom = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
-    fine = cv2.warpAffine(coarse, zoom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    edge = edge_distance(fine[..., 0], fine[..., 1], width, height)
-    return edge, radius2(fine[..., 0], fine[..., 1], width, height)
+    return cv2.warpAffine(coarse, zoom, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
 
 
 def _edge_distance(to_frame: np.ndarray, window: tuple[int, int, int, int], width: int, height: int) -> np.ndarray:
