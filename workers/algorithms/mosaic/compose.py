@@ -388,7 +388,8 @@ def gains_and_coverage(
         image = image_of(k)
         images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
         masks.append(inside)
-        radii.append(radius2(map_x, map_y, *sizes[k]))
+        # only where the frame is: far outside it rho^2 grows until the fall-off overflows (0 / inf warnings)
+        radii.append(np.where(inside, radius2(map_x, map_y, *sizes[k]), np.float32(0.0)))
     vignette = fit_vignetting(images, masks, radii) if vignetting else (0.0, 0.0)
     if vignette != (0.0, 0.0):
         images = [im / falloff(rho2, vignette)[..., None] for im, rho2 in zip(images, radii, strict=True)]
