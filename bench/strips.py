@@ -70,11 +70,15 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, args))
     peak = [0]
+    memory: list[tuple[float, float]] = []  # (seconds since start, the child's resident MiB)
     done = threading.Event()
+
+    clock = time.perf_counter()
 
     def sample() -> None:
         while not done.wait(2.0):
             peak[0] = max(peak[0], folder_bytes(watch) if watch and watch.exists() else 0)
+            memory.append((time.perf_counter() - clock, resident_mib(proc.pid or 0)))
 
     sampler = threading.Thread(target=sample, daemon=True)
     proc.start()
@@ -82,6 +86,7 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
     send.close()
     try:
         result: dict[str, Any] = recv.recv()
+        result["answered_at"] = time.perf_counter() - clock  # the pipeline's end, on the samples' clock
     except EOFError:
         result = {"ok": False, "status": f"child died, exit code {proc.exitcode}", "seconds": float("nan")}
     proc.join()
@@ -89,7 +94,32 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
     sampler.join()
     if watch is not None and watch.exists():
         result["peak_job_bytes"] = max(peak[0], folder_bytes(watch))
+    result["memory_samples"] = memory
     return result
+
+
+def resident_mib(pid: int) -> float:
+    """A live process's resident set (VmRSS), MiB; 0 once it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except FileNotFoundError:
+        pass
+    return 0.0
+
+
+def peak_by_stage(samples: list[tuple[float, float]], stage_seconds: dict[str, float], end: float) -> dict[str, int]:
+    """Each stage's peak resident MiB from the samples, the stages placed end to end back from ``end``, when the
+    pipeline answered (what it spends outside its stages falls before the first)."""
+    ends = {}
+    for name, seconds in reversed(list(stage_seconds.items())):
+        ends[name] = (end - seconds, end)
+        end -= seconds
+    return {
+        name: round(max((mib for t, mib in samples if start <= t <= stop), default=0.0))
+        for name, (start, stop) in reversed(list(ends.items()))
+    }
 
 
 def truth_errors(strip: Any, job: Path) -> dict[str, float]:
@@ -164,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": result["seconds"],
             "frames_per_hour": 3600 * args.frames / result["seconds"],
             "peak_mib": result["peak_mib"],
+            "peak_mib_by_stage": peak_by_stage(
+                result["memory_samples"], report["stage_seconds"], result["answered_at"]
+            ),
             "input_bytes": input_bytes,
             "output_bytes": output_bytes,
             "peak_job_bytes": result["peak_job_bytes"],
