@@ -78,6 +78,8 @@ def _tiled_profile(
     }
     if compress is not None:
         profile["compress"] = compress
+    if compress == "zstd":
+        profile["zstd_level"] = 1  # scratch rasters: the fastest level
     if transform is not None:
         profile["transform"] = Affine(*transform)
         if crs is not None:

@@ -236,8 +236,11 @@ def _working_geometry(ws: JobWorkspace) -> tuple[dict[int, tuple[int, int]], dic
 
 
 def _codec(geo: Any) -> str | None:
-    """Scratch rasters uncompressed (fastest), but deflated past SCRATCH_RAW_MAX_PX, where they would take 4 B/px."""
-    return None if geo.width * geo.height <= SCRATCH_RAW_MAX_PX else "deflate"
+    """Scratch rasters uncompressed (fastest), but ZSTD (level 1) past SCRATCH_RAW_MAX_PX, where they would take
+    4 B/px. Deflate (level 6, GDAL's default) was there before: on a 2.5 Gpx strip mosaic its bands and scratch
+    cost about a third of composing; on that mosaic's tiles ZSTD 1 wrote 8x and read 2x as fast for 6 % more
+    bytes."""
+    return None if geo.width * geo.height <= SCRATCH_RAW_MAX_PX else "zstd"
 
 
 def _working_to_photo(frame: Frame) -> np.ndarray:

@@ -13,8 +13,9 @@ from workers.algorithms.mosaic.alignment import apply_homography
 MAX_OUTPUT_PIXELS = 4_000_000_000  # ortho mode: a larger grid means a ground range gone wrong
 MAX_SPREAD = 1000.0  # planar: a grid this many times the frames' own area means the alignment broke
 # disk a mosaic needs per output px while it is written: the scratch GeoTIFF (3 bands and a mask,
-# uncompressed up to SCRATCH_RAW_MAX_PX, deflated beyond) and the COG with its overviews (measured:
-# about 1.2 B/px on drone mosaics, deflate with predictor; 2 allows for busier ground)
+# uncompressed up to SCRATCH_RAW_MAX_PX, ZSTD beyond) with its overviews (a third more), and the COG with its
+# overviews (measured: about 1.2 B/px on drone mosaics, 1.7 on a synthetic strip's busy ground, deflate with
+# predictor; 2 allows for busier ground). The 2.5 Gpx strip of bench/strips.py peaked at 5.05 B/px.
 SCRATCH_RAW_MAX_PX = 500_000_000
 COG_BYTES_PER_PX = 2.0
 
@@ -22,7 +23,7 @@ COG_BYTES_PER_PX = 2.0
 def disk_needed(width: int, height: int) -> int:
     """Bytes of free disk a ``width`` x ``height`` mosaic needs while it is written (an estimate)."""
     px = width * height
-    scratch = 4.0 if px <= SCRATCH_RAW_MAX_PX else 2.5
+    scratch = (4.0 if px <= SCRATCH_RAW_MAX_PX else 2.5) * 4 / 3
     return int(px * (scratch + COG_BYTES_PER_PX))
 
 
