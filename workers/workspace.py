@@ -697,13 +697,15 @@ class JobWorkspace:
         with np.load(self._parts_dir(stage) / "arrays.npz") as data:
             return {name: data[name] for name in data.files}
 
-    def compose_band_path(self, y: int) -> Path:
-        """A band of mosaic rows from ``y`` that one part of ``compose_mosaic`` wrote (GeoTIFF, scratch)."""
-        return self._parts_dir("compose_mosaic") / f"band_{y:07d}.tif"
+    def compose_band_path(self, y: int, raw: bool = False) -> Path:
+        """A band of mosaic rows from ``y`` that one part of ``compose_mosaic`` wrote (scratch): GeoTIFF, or with
+        ``raw`` an ``.npy`` of (h, w, 4) uint8 R, G, B and coverage."""
+        return self._parts_dir("compose_mosaic") / f"band_{y:07d}{'.npy' if raw else '.tif'}"
 
-    def index_band_path(self, y: int) -> Path:
-        """The frame index of the band of rows from ``y`` (uint16 GeoTIFF, scratch), beside its pixels."""
-        return self._parts_dir("compose_mosaic") / f"index_{y:07d}.tif"
+    def index_band_path(self, y: int, raw: bool = False) -> Path:
+        """The frame index of the band of rows from ``y`` (uint16 GeoTIFF, or ``.npy`` with ``raw``; scratch),
+        beside its pixels."""
+        return self._parts_dir("compose_mosaic") / f"index_{y:07d}{'.npy' if raw else '.tif'}"
 
     def part_inputs_version(self, stage: str) -> int:
         """Changes whenever ``save_part_inputs`` writes again (its file's modification time, ns)."""

@@ -351,13 +351,12 @@ def _warp(image: np.ndarray, to_frame: np.ndarray, window: tuple[int, int, int, 
 
 
 def _sample(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` (H, W, 3) at the maps, reading only the rows/columns needed."""
+    """Bilinear samples (uint8) of ``image`` (H, W, 3) at the maps, reading only the rows/columns needed."""
     xs, ys = map_x[valid], map_y[valid]
     c0, r0 = max(int(math.floor(xs.min())) - 1, 0), max(int(math.floor(ys.min())) - 1, 0)
     c1, r1 = min(int(math.ceil(xs.max())) + 2, image.shape[1]), min(int(math.ceil(ys.max())) + 2, image.shape[0])
     crop = np.ascontiguousarray(image[r0:r1, c0:c1])
-    out = cv2.remap(crop, map_x - c0, map_y - r0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.astype(np.float32)
+    return cv2.remap(crop, map_x - c0, map_y - r0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def gains_and_coverage(
@@ -386,7 +385,8 @@ def gains_and_coverage(
         frame_px = float(np.sqrt(abs(np.linalg.det(low_to_frame[:2, :2] / low_to_frame[2, 2]))))
         inside = feather_weights(map_x, map_y, *sizes[k], 2.0 * frame_px) >= 1.0
         image = image_of(k)
-        images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.float32))
+        # uint8, as sampled (a quarter of float32's memory: every frame's render covers the whole grid)
+        images.append(_sample(image, map_x, map_y, inside) if inside.any() else np.zeros((lh, lw, 3), np.uint8))
         masks.append(inside)
         # only where the frame is: far outside it rho^2 grows until the fall-off overflows (0 / inf warnings)
         radii.append(np.where(inside, radius2(map_x, map_y, *sizes[k]), np.float32(0.0)))
