@@ -3,7 +3,7 @@
 
 The plan measures what every part shares: the gains and the coverage from a low-resolution render, and the
 seams (a multiband mosaic is cut along them; a feathered one's seam visibility is measured on them). Each part
-composes one band of rows (``block_px`` high) into a file of its own (``.npy`` planes; a deflated GeoTIFF past
+composes one band of rows (``block_px`` high) into a file of its own (``.npy`` planes; a ZSTD GeoTIFF past
 SCRATCH_RAW_MAX_PX), and the band's frame index (which frame each pixel came from) into another; the finish
 copies the bands into the scratch GeoTIFFs, builds the overviews and writes both COGs. Memory depends on the
 band's width and the frames' size, never on the size of the mosaic.
@@ -219,7 +219,7 @@ def finish(
 def _raw_bands(geo: Any) -> bool:
     """Bands kept as ``.npy`` planes (no GDAL) whenever the scratch GeoTIFFs are uncompressed (:func:`_codec`):
     on the Brighton strip the bands' tiled GeoTIFF writes and reads cost 0.35 s of CPU, their ``.npy`` 0.15 s, for
-    the same COGs to the byte's value. Past SCRATCH_RAW_MAX_PX they are deflated GeoTIFFs (a third of the disk)."""
+    the same COGs to the byte's value. Past SCRATCH_RAW_MAX_PX they are ZSTD GeoTIFFs (a third of the disk)."""
     return _codec(geo) is None
 
 
