@@ -71,10 +71,12 @@ BASES = (
     "weights",
     "done",
 )  # what a stage's time left comes from (core.labels names each)
-# how much of a whole job the history's pace counts for against this job's own measured pace: on bench/eta.py's
-# runs one stage's seconds vary up to 2x from run to run with the machine's other work, and a pace taken from
-# the first stages alone (0.1) carried that to the rest of the job
-PRIOR_WEIGHT = 0.3
+# how much of a whole job the history's pace counts for against this job's own measured pace. A machine faster
+# or slower than the one the rates came from shifts every stage alike, and a heavy prior held the estimate to
+# the rates: at 0.3, runs of bench/eta.py on a quiet machine (2-2.5x the rates' pace) were off by 61-113 % of
+# the job from a quarter done; at 0.02 by 11-16 %, and the runs on a busy one, where a stage's seconds vary up
+# to 2x from run to run, by 8-19 % as at 0.3 (0.01-0.03 alike; tests/unit/data/eta_traces*.json)
+PRIOR_WEIGHT = 0.02
 # earlier jobs whose working megapixels per photo are within this factor of a job's predict it (history): the
 # seconds per unit of small synthetic frames read, matched and tied 2-3x slower than the Brighton strip's
 SIMILAR_SIZE = 2.0

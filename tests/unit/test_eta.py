@@ -26,6 +26,7 @@ STAGES = [("load", 10.0), ("match", 30.0), ("compose", 60.0)]
 # grid at 640 px, a 24-frame one at 800 px and the Brighton strip at 2048 px, every progress report with its time;
 # none of them among the runs DEFAULT_RATES were measured on
 TRACES = Path(__file__).parent / "data" / "eta_traces.json"
+QUIET_TRACES = Path(__file__).parent / "data" / "eta_traces_quiet.json"
 
 
 def timeline(seconds: dict[str, float]) -> list[tuple[float, str, float, dict[str, float]]]:
@@ -115,8 +116,8 @@ def test_a_running_stage_counts_down_its_expected_time_and_does_not_end_before_i
     # planning, nothing reported done: time goes on (less 3 s, though the pace it sets for the job grows)
     assert left(0.0, 4.0) < left(0.0, 1.0) - 1.5
     # 95 % reported after 3 s (a plan's or a last step's share ahead of its time): not taken as nearly done (its
-    # own rate says 0.16 s; the job's pace, taking the share at its word, makes the stage 8.3 s)
-    assert left(0.95, 3.0) > 5.0
+    # own rate says 0.16 s; the job's pace, taking the share at its word, makes the stage 7.8 s)
+    assert left(0.95, 3.0) > 4.5
     assert left(0.5, 5.0) == pytest.approx(5.0, abs=0.5)  # on time: its own rate and its plan agree
 
 
@@ -131,8 +132,11 @@ def test_only_earlier_jobs_of_a_similar_size_and_the_reference_predict_a_job() -
     assert seconds_per_unit([], {"compose_mosaic": 0.3}) == {}  # no history: the caller's defaults
 
 
-def test_on_three_recorded_runs_the_time_left_is_within_a_fifth_of_the_job_from_a_quarter_done() -> None:
-    runs = [trace_run(t) for t in json.loads(TRACES.read_text())]
+@pytest.mark.parametrize("traces", [TRACES, QUIET_TRACES], ids=["busy machine", "quiet machine"])
+def test_on_three_recorded_runs_the_time_left_is_within_a_fifth_of_the_job_from_a_quarter_done(traces: Path) -> None:
+    """The runs of bench/eta.py, on a machine busy with other work and on a quiet one (2-2.5x faster than the
+    default rates, which came from a busy one): each within 20 % of the job once a quarter is done."""
+    runs = [trace_run(t) for t in json.loads(traces.read_text())]
     assert [name.split(",")[0] for name, _ in runs] == ["synthetic 12 frames", "synthetic 24 frames", "Brighton strip"]
     done: list[dict] = []
     for name, run in runs:
