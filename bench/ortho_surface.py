@@ -34,10 +34,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tests.terrain_scenes import (  # noqa: E402
-    BUILDINGS,
     TerrainFlight,
     block_colour_error,
     level_ground_colour_error,
+    make_buildings_flight,
     make_terrain_flight,
     relief_colour_error,
     roof_height_rms,
@@ -48,13 +48,6 @@ from workers.pipeline import process_directory, run_stage  # noqa: E402
 from workers.workspace import JobWorkspace  # noqa: E402
 
 SURFACES = ("plane", "tie_points", "dense")
-
-
-def make_buildings_flight(out_dir: Path) -> TerrainFlight:
-    """The buildings scene of ``test_ortho_truth.py`` (the same call)."""
-    return make_terrain_flight(
-        out_dir, rows=2, per_row=4, frame_size=(480, 360), altitude_m=40.0, relief_m=2.0, seed=7, blocks=BUILDINGS
-    )
 
 
 def measure(name: str, frames: Path, work: Path, options: dict, flight: TerrainFlight | None) -> None:

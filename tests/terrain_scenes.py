@@ -201,6 +201,14 @@ def make_terrain_flight(
     return flight
 
 
+def make_buildings_flight(out_dir: Path) -> TerrainFlight:
+    """The buildings flight: 2 x 4 frames of 480 x 360 px from 40 m over 2 m hills and ``BUILDINGS`` (the ortho
+    truth test, the ortho DSM browser test and ``bench/ortho_surface.py`` fly the same one)."""
+    return make_terrain_flight(
+        out_dir, rows=2, per_row=4, frame_size=(480, 360), altitude_m=40.0, relief_m=2.0, seed=7, blocks=BUILDINGS
+    )
+
+
 WALL_SHADE = 0.55  # a wall's brightness against the ground's
 
 

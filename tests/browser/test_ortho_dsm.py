@@ -17,7 +17,7 @@ import pytest
 from pyproj import Transformer
 
 from tests.browser.support import ARTIFACTS, JOB_TIMEOUT_MS, MOSAIC_TILES_SETTLED_JS, TERMINAL_STATUS_JS, wait_for
-from tests.terrain_scenes import BUILDINGS, TerrainFlight, make_terrain_flight
+from tests.terrain_scenes import BUILDINGS, TerrainFlight, make_buildings_flight
 
 pytestmark = pytest.mark.browser
 
@@ -89,16 +89,7 @@ def test_an_ortho_jobs_dsm_layer_elevation_and_volume(signed_in_page, live_servi
     from playwright.sync_api import expect
 
     page, watch = signed_in_page
-    flight = make_terrain_flight(
-        tmp_path / "frames",
-        rows=2,
-        per_row=4,
-        frame_size=(480, 360),
-        altitude_m=40.0,
-        relief_m=2.0,
-        seed=7,
-        blocks=BUILDINGS,
-    )
+    flight = make_buildings_flight(tmp_path / "frames")
     job_id = _ortho_job(live_service, flight)
     page.goto(f"{live_service.url}/#/jobs/{job_id}")
     wait_for(page, TERMINAL_STATUS_JS, JOB_TIMEOUT_MS, watch, "the ortho job did not finish")

@@ -10,10 +10,10 @@ import rasterio
 
 from tests.conftest import shared_data
 from tests.terrain_scenes import (
-    BUILDINGS,
     TerrainFlight,
     block_colour_error,
     level_ground_colour_error,
+    make_buildings_flight,
     make_terrain_flight,
     relief_colour_error,
     roof_height_rms,
@@ -125,16 +125,7 @@ def reprojected(ws: JobWorkspace, kind: str, tmp_path) -> JobWorkspace:
 def buildings(tmp_path_factory: pytest.TempPathFactory) -> tuple[TerrainFlight, JobWorkspace]:
     """Eight frames of 480 x 360 px from 40 m over 2 m hills and four box-shaped buildings (``BUILDINGS``)."""
     root = tmp_path_factory.mktemp("buildings")
-    flight = make_terrain_flight(
-        root / "frames",
-        rows=2,
-        per_row=4,
-        frame_size=(480, 360),
-        altitude_m=40.0,
-        relief_m=2.0,
-        seed=7,
-        blocks=BUILDINGS,
-    )
+    flight = make_buildings_flight(root / "frames")
     process_directory(root / "frames", root / "job", {"mode": "ortho", "gps_sigma_m": 0.05})
     return flight, JobWorkspace(root / "job")
 
