@@ -204,3 +204,22 @@ def test_line_similarity_levels_the_cameras_about_a_collinear_strip() -> None:
     assert abs(s - 5.0) < 1e-9
     assert np.allclose(s * model_C @ R.T + t, truth_C, atol=1e-9)
     assert np.abs(R @ planted - np.eye(3)).max() < 1e-6  # nadir cameras: the turn about the line is found
+
+
+def test_line_similarity_turns_photos_facing_along_the_line_to_look_down() -> None:
+    """Nadir photos whose right-hand side faces along the flight line (x axes along it, a few degrees of yaw and
+    tilt each): levelling their x axes hardly turns the model about the line, so their optical axes are taken
+    down (levelling alone left such a flight 20-25 degrees off nadir)."""
+    rng = np.random.default_rng(3)
+    level = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # x east, y south, z down
+    truth_R = np.array([level @ rotation_from_vector(rng.normal(0, np.radians(3), 3)) for _ in range(8)])
+    truth_C = np.column_stack([np.arange(8) * 10.0, rng.normal(0, 1.0, 8), np.full(8, 60.0)])
+    planted = rotation_from_vector(np.array([0.4, 0.9, -0.3]))
+    model_C = 0.2 * truth_C @ planted.T + [3.0, 1.0, -2.0]
+    model_R = truth_R @ planted.T
+    s, R, t = line_similarity(model_C, truth_C, model_R)
+    found = model_R @ R.T  # world -> camera after the fit
+    off_nadir = np.degrees(np.arccos(-found[:, 2, 2]))
+    true_off = np.degrees(np.arccos(-truth_R[:, 2, 2]))
+    assert abs(off_nadir.mean() - true_off.mean()) < 3.0, (off_nadir, true_off)
+    assert np.degrees(np.arccos(np.clip((np.trace(R @ planted) - 1) / 2, -1, 1))) < 3.0  # the planted turn undone

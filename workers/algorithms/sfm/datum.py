@@ -83,6 +83,9 @@ def similarity_3d(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, 
     return s, R, mu_d - s * R @ mu_s
 
 
+LEVEL_MIN = 0.2  # line_similarity: mean squared share of the x axes across the line that levelling needs
+
+
 def line_similarity(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Similarity of camera centres ``src`` to collinear GPS fixes ``dst`` (N, 3), N >= 2.
 
@@ -90,8 +93,11 @@ def line_similarity(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray) -> 
     that the cameras are level (x axes horizontal: least squares over ``rotations`` (N, 3, 3), world ->
     camera), of the two level solutions the one whose ``y + z`` axes point down (cameras between looking
     ahead and looking straight down); the assumption OpenSfM makes for its "horizontal" / "vertical"
-    orientation priors. When every x axis lies along the line, levelling says nothing and the turn that
-    points ``y + z`` furthest down is taken.
+    orientation priors. When the x axes lie (nearly) along the line, levelling them hardly turns the model
+    about it (mean squared share across the line under ``LEVEL_MIN``: photos whose right-hand side faces along
+    the flight), and the turn that points the optical axes furthest down is taken instead (a survey's photos
+    look down): levelled, a 2 x 4 nadir flight (9 m RMS across its line, a "line" for 5 m fixes) came out 20-25
+    degrees off nadir.
     """
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     a, b = src - mu_s, dst - mu_d
@@ -103,15 +109,26 @@ def line_similarity(src: np.ndarray, dst: np.ndarray, rotations: np.ndarray) -> 
     angle = np.arctan2(np.linalg.norm(axis), d_s @ d_d)
     R0 = rotation_from_vector(axis / max(np.linalg.norm(axis), 1e-300) * angle)
     x_axes, yz_axes = rotations[:, 0, :] @ R0.T, (rotations[:, 1, :] + rotations[:, 2, :]) @ R0.T
+    z_axes = rotations[:, 2, :] @ R0.T
 
     def tilt(theta: np.ndarray) -> np.ndarray:  # sum of squared heights of the turned x axes
         return np.sum(_turned_height(x_axes, d_d, np.atleast_1d(theta)) ** 2, axis=1)
 
+    def height(theta: np.ndarray) -> np.ndarray:  # summed heights of the turned optical axes (down: negative)
+        return _turned_height(z_axes, d_d, np.atleast_1d(theta)).sum(axis=1)
+
     theta = np.linspace(-np.pi, np.pi, 721)
     down = -_turned_height(yz_axes, d_d, theta).sum(axis=1)
     t = tilt(theta)
-    if t.max() - t.min() < 1e-9 * len(src):  # every x axis along the line: levelling cannot choose
-        best = float(theta[np.argmax(down)])
+    across = x_axes - np.outer(x_axes @ d_d, d_d)
+    if np.mean(np.sum(across**2, axis=1)) < LEVEL_MIN:  # the x axes along the line: levelling cannot choose
+        start = float(theta[np.argmin(height(theta))])
+        best = float(
+            minimize_scalar(
+                lambda a: float(height(a)[0]), bounds=(start - 0.01, start + 0.01), method="bounded",
+                options={"xatol": 1e-10},
+            ).x
+        )  # fmt: skip
     else:
         first = int(np.argmin(t))
         far = np.abs(np.angle(np.exp(1j * (theta - theta[first])))) > np.pi / 2
