@@ -37,11 +37,16 @@ DEFAULT_OPTIONS = {
 }  # native output, tie points coarse to fine, the CCD joins undone
 
 
-def peak_rss_mib() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
+def status_mib(field: str, pid: int | str = "self") -> float:
+    """A process's ``/proc/<pid>/status`` memory field (``VmHWM``: peak resident, ``VmRSS``: resident), MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
+    raise RuntimeError(f"no {field} in /proc/{pid}/status (Linux only)")
+
+
+def peak_rss_mib() -> float:
+    return status_mib("VmHWM")
 
 
 def run_pipeline(src: str, out: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -99,14 +104,11 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
 
 
 def resident_mib(pid: int) -> float:
-    """A live process's resident set (VmRSS), MiB; 0 once it is gone."""
+    """A live process's resident set (VmRSS), MiB; 0 once it is gone (or a zombie, which has none)."""
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except FileNotFoundError:
-        pass
-    return 0.0
+        return status_mib("VmRSS", pid)
+    except (FileNotFoundError, RuntimeError):
+        return 0.0
 
 
 def peak_by_stage(samples: list[tuple[float, float]], stage_seconds: dict[str, float], end: float) -> dict[str, int]:

@@ -157,7 +157,7 @@ def finish(
     mask)."""
     geo = ws.load_georef()
     raw = _raw_bands(geo)
-    for key in records:  # bands deleted by a finish that was stopped after the COG: composed again here
+    for key in records:  # bands a stopped finish had already copied (and deleted): composed again here
         if not (ws.compose_band_path(int(key), raw).exists() and ws.index_band_path(int(key), raw).exists()):
             run_part(ws, cfg, key)
     tmp, tmp_index = ws.mosaic_scratch_path(), ws.frame_index_scratch_path()
@@ -196,9 +196,6 @@ def finish(
         with open_window_reader(ws.mosaic_path()) as read_window:
             visibility = seam_visibility(read_window, *seam_points(labels, label_scale))
     ws.remove_native_images()
-    for key in records:
-        ws.compose_band_path(int(key), raw).unlink(missing_ok=True)
-        ws.index_band_path(int(key), raw).unlink(missing_ok=True)
     vignette = shared["vignette"]
     progress(1.0, f"band {len(records)}/{len(records)}")
     return {
