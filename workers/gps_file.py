@@ -18,12 +18,12 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from pyproj import CRS, Transformer
 
-from workers.algorithms.sfm.gcp import parse_crs
+if TYPE_CHECKING:
+    from pyproj import CRS
 
 GPS_FILE_NAMES = ("geo.txt", "gps.csv")  # the stored names: ODM's geo.txt, the CSV
 MAX_NAME_CHARS = 255  # an image name longer than any stored one is a misread line
@@ -143,7 +143,12 @@ def _content_lines(text: str) -> list[tuple[int, str]]:
 
 def _parse_crs(text: str) -> CRS:
     """A CRS from geo.txt's first line: a PROJ string, ``EPSG:nnnn``, ``WGS84`` or ``WGS84 UTM <zone><N|S>``
-    (ODM's first line, read as the GCP file's is: :func:`workers.algorithms.sfm.gcp.parse_crs`)."""
+    (ODM's first line, read as the GCP file's is: :func:`workers.algorithms.sfm.gcp.parse_crs`).
+
+    pyproj (~20 MiB) is imported here, by the side files that name a system, not by every worker that imports
+    the workspace (a drone flight without a side file composes without it)."""
+    from workers.algorithms.sfm.gcp import parse_crs
+
     try:
         crs = parse_crs(text)
     except ValueError as exc:
@@ -160,6 +165,8 @@ def _parse_crs(text: str) -> CRS:
 def _to_lonlat(xy: np.ndarray, crs: CRS) -> np.ndarray:
     """(N, 2) float64 x, y in ``crs`` (x = easting or longitude) -> (N, 2) WGS84 longitude, latitude degrees;
     inf or NaN where a point lies outside what ``crs`` can convert."""
+    from pyproj import CRS, Transformer  # see _parse_crs
+
     wgs84 = CRS.from_epsg(4326)
     if crs == wgs84:
         return xy

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from pyproj import Transformer
 
 # Image rows grow downwards, northings upwards: the plane is flipped before the (reflection-free)
 # similarity, so a nadir photo is never mirrored.
@@ -19,7 +18,10 @@ def utm_epsg(lat: float, lon: float) -> int:
 
 
 def lonlat_to_utm(lonlat: np.ndarray, epsg: int) -> np.ndarray:
-    """(N, 2) lon, lat degrees -> (N, 2) easting, northing metres."""
+    """(N, 2) lon, lat degrees -> (N, 2) easting, northing metres (pyproj, ~20 MiB, imported by a job that has GPS
+    rather than by every worker that imports this module)."""
+    from pyproj import Transformer
+
     tr = Transformer.from_crs(4326, epsg, always_xy=True)
     e, n = tr.transform(lonlat[:, 0], lonlat[:, 1])
     return np.column_stack([e, n])
@@ -27,6 +29,8 @@ def lonlat_to_utm(lonlat: np.ndarray, epsg: int) -> np.ndarray:
 
 def utm_to_lonlat(en: np.ndarray, epsg: int) -> np.ndarray:
     """(N, 2) easting, northing metres -> (N, 2) lon, lat degrees."""
+    from pyproj import Transformer  # see lonlat_to_utm
+
     tr = Transformer.from_crs(epsg, 4326, always_xy=True)
     lon, lat = tr.transform(en[:, 0], en[:, 1])
     return np.column_stack([lon, lat])

@@ -12,20 +12,22 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TypeAlias
+from typing import TYPE_CHECKING, TypeAlias
 
 import numpy as np
-import scipy.linalg
-from scipy.sparse import csr_matrix, diags
-from scipy.sparse.linalg import spsolve
 from threadpoolctl import threadpool_limits
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 # d(C q)/d(params): parameter m of D (row-major, D[2, 2] = 0) scales component ROW[m] of q by q[COL[m]]
 _ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2])
 _COL = np.array([0, 1, 2, 0, 1, 2, 0, 1])
 DENSE_MAX_UNKNOWNS = 2400  # normal equations up to this size (300 frames) are solved densely, beyond sparsely
 
-Normal: TypeAlias = np.ndarray | csr_matrix
+# SciPy's sparse matrices only past DENSE_MAX_UNKNOWNS, imported there: SciPy's linear algebra adds ~50 MiB to a
+# worker that composes a drone flight (more than its data: OpenCV's stitcher peaks at 134 MiB on budapest1-6)
+Normal: TypeAlias = "np.ndarray | csr_matrix"
 
 
 @dataclass
@@ -165,6 +167,8 @@ class _BlockSum:
         cols = (8 * keys[:, 1, None, None] + grid[None, None, :]) + np.zeros((1, 8, 1), np.int64)
         data = np.concatenate([values.ravel(), diagonal])
         index = (np.concatenate([rows.ravel(), np.arange(n)]), np.concatenate([cols.ravel(), np.arange(n)]))
+        from scipy.sparse import csr_matrix  # see Normal
+
         return csr_matrix((data, index), shape=(n, n))  # duplicates are summed
 
 
@@ -223,14 +227,17 @@ def _iterate(
 
 
 def _solve(normal: Normal, damping: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """``(normal + diag(damping))^-1 rhs``: Cholesky on a dense (symmetric, positive definite once damped)
-    matrix, about 7x the speed of a general solve at 30 frames; SuperLU on a sparse one."""
+    """``(normal + diag(damping))^-1 rhs``: LAPACK's LU on a dense matrix (NumPy's: SciPy's Cholesky took 0.36 ms
+    against 0.47 ms at 30 frames, 6.6 against 10.7 ms at 100, not worth SciPy's memory), SuperLU on a sparse one."""
     if isinstance(normal, np.ndarray):
         damped = normal + np.diag(damping)
         try:
-            return np.asarray(scipy.linalg.cho_solve(scipy.linalg.cho_factor(damped), rhs))
-        except np.linalg.LinAlgError:  # not positive definite in floating point: least squares instead
+            return np.linalg.solve(damped, rhs)
+        except np.linalg.LinAlgError:  # singular in floating point: least squares instead
             return np.linalg.lstsq(damped, rhs, rcond=None)[0]
+    from scipy.sparse import diags  # see Normal
+    from scipy.sparse.linalg import spsolve
+
     return np.asarray(spsolve((normal + diags(damping)).tocsc(), rhs))
 
 

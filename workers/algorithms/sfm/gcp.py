@@ -21,12 +21,14 @@ import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
 
 from workers.algorithms.geometry import lonlat_to_utm
+
+if TYPE_CHECKING:  # pyproj (~20 MiB) is imported by the functions that convert: the workspace imports this module
+    from pyproj import CRS
 
 _ODM_UTM = re.compile(r"^WGS84\s+UTM\s+(\d{1,2})\s*([NS])$", re.IGNORECASE)
 
@@ -47,6 +49,8 @@ class LocalFrame:
 
     def from_crs(self, xyz: np.ndarray, crs: CRS) -> np.ndarray:
         """(N, 3) coordinates in ``crs`` (x = easting or longitude) -> (N, 3) local metres."""
+        from pyproj import CRS, Transformer
+
         pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         tr = Transformer.from_crs(crs, CRS.from_epsg(self.epsg), always_xy=True)
         e, n = tr.transform(pts[:, 0], pts[:, 1])
@@ -71,6 +75,9 @@ class GroundControlPoint:
 
 def parse_crs(text: str) -> CRS:
     """A CRS from ODM's first line: a PROJ string, ``EPSG:nnnn`` or ``WGS84 UTM <zone><N|S>``."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
     text = text.strip()
     found = _ODM_UTM.match(text)
     if found:
