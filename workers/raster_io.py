@@ -98,38 +98,35 @@ def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, 
     The overviews are averaged under the mask by :class:`OverviewPyramid` (beside ``src``, removed after), then
     GDAL's COG driver copies every level and compresses it on all cores in one pass. Memory: a band of rows.
     """
-    levels_dir = src.with_name(src.name + ".levels")
-    try:
-        with rasterio.open(src) as scratch:
-            width, height, crs, transform = scratch.width, scratch.height, scratch.crs, scratch.transform
-            metadata = {**scratch.tags(), **({**provenance_tags(), **tags} if tags is not None else {})}
-        levels = _pyramid_paths(levels_dir, width, height)
-        with OverviewPyramid(levels, width, height) as pyramid, open_band_reader(src) as read:
-            for y in range(0, height, COG_BLOCK_PX):
-                pyramid.add(*read(Window(0, y, width, min(COG_BLOCK_PX, height - y))))
-        placed = transform if crs is not None or not transform.is_identity else None
-        vrt = mosaic_vrt(levels_dir / "mosaic.vrt", width, height, crs, placed, [(src, 0, height)],
-                         overviews=levels, tags=metadata, mask_band="mask,1")  # fmt: skip
-        copy_to_cog(vrt, dst, compression)
-    finally:
-        shutil.rmtree(levels_dir, ignore_errors=True)
+    _translate(src, dst, compression, None if tags is None else {**provenance_tags(), **tags}, index=False)
 
 
 def translate_index_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
     """:func:`translate_to_cog` for a frame index (``src`` as :func:`open_index_writer` writes it; 0: none): nodata
     0, overviews by nearest neighbour (a frame number is not averaged), never JPEG (deflate instead)."""
+    codec = "deflate" if compression == "jpeg" else compression
+    _translate(src, dst, codec, {**provenance_tags(), **(tags or {})}, index=True)
+
+
+def _translate(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None, *, index: bool) -> None:
+    """The overviews of ``src`` by :class:`OverviewPyramid`, band by band, then ``src`` and them (through a VRT)
+    copied to a COG at ``dst`` with ``tags`` added to ``src``'s own."""
     levels_dir = src.with_name(src.name + ".levels")
     try:
         with rasterio.open(src) as scratch:
             width, height, crs, transform = scratch.width, scratch.height, scratch.crs, scratch.transform
+            metadata = {**scratch.tags(), **(tags or {})}
         levels = _pyramid_paths(levels_dir, width, height)
-        with OverviewPyramid(levels, width, height, index=True) as pyramid, open_index_reader(src) as read:
+        with (
+            OverviewPyramid(levels, width, height, index=index) as pyramid,
+            (open_index_reader if index else open_band_reader)(src) as read,
+        ):
             for y in range(0, height, COG_BLOCK_PX):
-                pyramid.add(read(Window(0, y, width, min(COG_BLOCK_PX, height - y))))
+                rows = read(Window(0, y, width, min(COG_BLOCK_PX, height - y)))
+                pyramid.add(*((rows,) if index else rows))
         placed = transform if crs is not None or not transform.is_identity else None
-        vrt = mosaic_vrt(levels_dir / "index.vrt", width, height, crs, placed, [(src, 0, height)], dtype="uint16",
-                         nodata=0, overviews=levels, tags={**provenance_tags(), **(tags or {})})  # fmt: skip
-        copy_to_cog(vrt, dst, "deflate" if compression == "jpeg" else compression, index=True)
+        vrt = _vrt_with_overviews(levels_dir / "cog.vrt", src, width, height, crs, placed, levels, metadata, index)
+        copy_to_cog(vrt, dst, compression, index=index)
     finally:
         shutil.rmtree(levels_dir, ignore_errors=True)
 
@@ -381,9 +378,9 @@ def open_window_reader(path: Path) -> Iterator[WindowRead]:
         yield read
 
 
-# -- a COG straight from the composed bands, with overviews averaged under the mask by us ----------------------
+# -- overviews averaged under the mask, level by level, and the VRT that hands them to GDAL's COG driver -------
 
-OVERVIEW_CHUNK_PX = 8192  # columns averaged at once (even): a float copy of 8192 x band rows, never a band's width
+OVERVIEW_CHUNK_PX = 8192  # columns averaged at once (even): temporaries of 8192 x a band's rows, never its width
 
 
 def masked_half(rgb: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -471,64 +468,46 @@ class OverviewPyramid:
         self.add(*half, level=level + 1)
 
 
-_GDAL_TYPES = {"uint8": "Byte", "uint16": "UInt16"}
-
-
-def mosaic_vrt(
+def _vrt_with_overviews(
     path: Path,
+    src: Path,
     width: int,
     height: int,
-    crs: int | str | CRS | None,
-    transform: list[float] | Affine | None,
-    bands: list[tuple[Path, int, int]],
-    *,
-    dtype: str = "uint8",
-    overviews: list[Path] | None = None,
-    tags: Mapping[str, str] | None = None,
-    nodata: float | None = None,
-    mask_band: str = "4",
+    crs: CRS | None,
+    transform: Affine | None,
+    overviews: list[Path],
+    tags: Mapping[str, str],
+    index: bool,
 ) -> Path:
-    """A VRT at ``path`` of the mosaic assembled from row ``bands`` (file, y, rows), each a dataset of the
-    mosaic's width: for ``dtype`` uint8 RGB in bands 1-3 and the mask in ``mask_band`` ("4", or "mask,1": a
-    GeoTIFF's internal mask); for uint16 one band (a frame index). ``overviews`` (GeoTIFFs as
-    :func:`open_block_writer` writes them, level 2, 4, ...) are its overviews; ``tags`` its metadata, which the
-    COG driver writes as TIFF tags. Placed as :func:`open_block_writer` places a mosaic (``crs`` may also be a
-    CRS, ``transform`` an Affine)."""
-    count = 3 if dtype == "uint8" else 1
+    """A VRT at ``path`` of the GeoTIFF ``src`` (RGB with an internal mask, or with ``index`` one uint16 band,
+    nodata 0) whose overviews are the files ``overviews`` (level 2, 4, ...: the same layout) and whose metadata
+    is ``tags``, which the COG driver writes as TIFF tags."""
     root = ET.Element("VRTDataset", rasterXSize=str(width), rasterYSize=str(height))
     if transform is not None:
         if crs is not None:
-            srs = crs if isinstance(crs, CRS) else CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
-            ET.SubElement(root, "SRS").text = srs.to_wkt()
-        affine = transform if isinstance(transform, Affine) else Affine(*transform)
-        ET.SubElement(root, "GeoTransform").text = ", ".join(repr(v) for v in affine.to_gdal())
+            ET.SubElement(root, "SRS").text = crs.to_wkt()
+        ET.SubElement(root, "GeoTransform").text = ", ".join(repr(v) for v in transform.to_gdal())
     if tags:
         metadata = ET.SubElement(root, "Metadata")
         for key, value in tags.items():
             ET.SubElement(metadata, "MDI", key=key).text = value
 
     def band(parent: ET.Element, source_band: str, number: int | None) -> None:
-        node = ET.SubElement(parent, "VRTRasterBand", dataType=_GDAL_TYPES[dtype])
+        node = ET.SubElement(parent, "VRTRasterBand", dataType="UInt16" if index else "Byte")
         if number is not None:
             node.set("band", str(number))
-            if count == 3:
+            if not index:
                 ET.SubElement(node, "ColorInterp").text = ("Red", "Green", "Blue")[number - 1]
-        if nodata is not None:
-            ET.SubElement(node, "NoDataValue").text = repr(nodata)
-        for file, y, rows in bands:
-            source = ET.SubElement(node, "SimpleSource")
+        if index:
+            ET.SubElement(node, "NoDataValue").text = "0"
+        for file in [src, *overviews]:
+            source = ET.SubElement(node, "SimpleSource" if file == src else "Overview")
             ET.SubElement(source, "SourceFilename", relativeToVRT="0").text = str(file.resolve())
             ET.SubElement(source, "SourceBand").text = source_band
-            ET.SubElement(source, "SrcRect", xOff="0", yOff="0", xSize=str(width), ySize=str(rows))
-            ET.SubElement(source, "DstRect", xOff="0", yOff=str(y), xSize=str(width), ySize=str(rows))
-        for level in overviews or []:
-            overview = ET.SubElement(node, "Overview")
-            ET.SubElement(overview, "SourceFilename", relativeToVRT="0").text = str(level.resolve())
-            ET.SubElement(overview, "SourceBand").text = "1" if count == 1 else source_band if number else "mask,1"
 
-    for n in range(1, count + 1):
+    for n in range(1, 2 if index else 4):
         band(root, str(n), n)
-    if count == 3:
-        band(ET.SubElement(root, "MaskBand"), mask_band, None)
+    if not index:
+        band(ET.SubElement(root, "MaskBand"), "mask,1", None)
     ET.ElementTree(root).write(path)
     return path
