@@ -71,17 +71,20 @@ def overlap_statistics(images: list[np.ndarray], masks: list[np.ndarray]) -> tup
     """
     n = len(images)
     c = images[0].shape[2] if n else 3
+    if n == 0:
+        return np.zeros((0, 0, c)), np.zeros((0, 0), np.int64)
+    # every pair at once, as products of (n, pixels) matrices: sums[i, j] = the sum of frame i where both are
+    # (a pair at a time by boolean indexing took 0.06 s of budapest1-6's 0.13 s compose plan)
+    # float32 BLAS: means to ~1e-6, counts exact (a grid of under 2^24 px: OVERVIEW_PX is 768)
+    covered = np.stack([m.ravel() for m in masks]).astype(np.float32)
+    overlap = covered @ covered.T
+    counts = np.rint(overlap).astype(np.int64)
+    np.fill_diagonal(counts, 0)
     means = np.zeros((n, n, c))
-    counts = np.zeros((n, n), np.int64)
-    for i in range(n):
-        for j in range(i + 1, n):
-            both = masks[i] & masks[j]
-            k = int(both.sum())
-            if k == 0:
-                continue
-            counts[i, j] = counts[j, i] = k
-            means[i, j] = images[i][both].mean(axis=0)
-            means[j, i] = images[j][both].mean(axis=0)
+    for ch in range(c):
+        values = np.stack([im[..., ch].ravel() for im in images]).astype(np.float32) * covered
+        means[:, :, ch] = (values @ covered.T) / np.maximum(overlap, 1.0)
+    means[counts == 0] = 0.0
     return means, counts
 
 
