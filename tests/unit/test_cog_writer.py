@@ -3,6 +3,7 @@ the same raster (raster_io.translate_to_cog, the small mosaics' path) as the ora
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,9 @@ def scene(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return rgb, mask, index
 
 
-def write_bands(folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray, codec: str) -> tuple[list, list]:
+def write_bands(
+    folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray, codec: str
+) -> tuple[list[Path], list[Path]]:
     """The raster as 512-row bands, as compose_mosaic's parts write them, 256 px windows at a time."""
     height, width = mask.shape
     bands, indexes = [], []
@@ -72,17 +75,17 @@ def gdal_cogs(folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray
     return folder / "gdal.tif", folder / "gdal_index.tif"
 
 
-def assemble(folder: Path, bands: list, indexes: list, size: tuple[int, int], codec: str, **kw: Any) -> tuple:
-    width, height = size
-    placed = {"width": width, "height": height, "crs": EPSG, "transform": TRANSFORM, "compression": codec}
+def assemble(
+    folder: Path, bands: list[Path], indexes: list[Path], size: tuple[int, int], codec: str, bigtiff: bool | None = None
+) -> tuple[Path, Path]:
+    """Both COGs from their bands, placed and tagged as :func:`gdal_cogs` places and tags them."""
+    write = partial(
+        write_cog_from_bands, width=size[0], height=size[1], crs=EPSG, transform=TRANSFORM, compression=codec
+    )
     tags = {"TIFFTAG_IMAGEDESCRIPTION": "m"}
-    write_cog_from_bands(
-        folder / "ours.tif", bands, kind="rgb", tags=tags, scratch=folder / "m.tmp.tif", **placed, **kw
-    )
+    write(folder / "ours.tif", bands, kind="rgb", tags=tags, scratch=folder / "m.tmp.tif", bigtiff=bigtiff)
     tags = {"TIFFTAG_IMAGEDESCRIPTION": "i", "FRAME_1": "a.tif"}
-    write_cog_from_bands(
-        folder / "ours_index.tif", indexes, kind="index", tags=tags, scratch=folder / "i.tmp.tif", **placed
-    )
+    write(folder / "ours_index.tif", indexes, kind="index", tags=tags, scratch=folder / "i.tmp.tif")
     return folder / "ours.tif", folder / "ours_index.tif"
 
 
@@ -207,7 +210,7 @@ def test_a_gigapixel_mosaic_is_composed_into_the_same_cogs_with_no_scratch_mosai
     ws.forget_stage_report("compose_mosaic")
     for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
         record.unlink()
-    copy, copied = cog_writer._copy_tiles, []
+    copy, copied = cog_writer._copy_tiles, list[str]()
 
     def killed(out: Any, source: Any) -> int:
         if source.path.name.startswith("band_") and len(copied) == 2:
