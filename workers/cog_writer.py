@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import ExitStack, contextmanager
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
@@ -27,6 +27,7 @@ from rasterio.crs import CRS
 from rasterio.transform import Affine
 from rasterio.windows import Window
 
+from workers.parallel import ordered_map, usable_cores
 from workers.raster_io import COG_BLOCK_PX, BlockWriter, IndexWriter, overview_levels, provenance_tags
 from workers.workspace import ProgressFn, atomic_path, noop_progress
 
@@ -141,8 +142,8 @@ def write_cog_from_bands(
     ``tags`` are GDAL metadata items (``TIFFTAG_IMAGEDESCRIPTION`` and the like; provenance added as
     ``translate_to_cog`` adds it). Overviews as GDAL builds them: factors 2, 4, ... down to one tile, the masked
     average of a mosaic's pixels (its mask: any pixel covered), the top-left pixel of a frame index; they are
-    written to files named after ``scratch`` (``<stem>.ovr<factor>.tif``) and deleted once copied. BigTIFF past
-    4 GiB (``bigtiff`` forces either way).
+    written a tile row per file named after ``scratch`` (``<stem>.ovr<factor>.<row>.tif``), each deleted once
+    copied. BigTIFF past 4 GiB (``bigtiff`` forces either way).
     """
     if not bands:
         raise ValueError("a COG needs at least one band")
@@ -152,15 +153,17 @@ def write_cog_from_bands(
     _write_header(header, width, height, crs, transform, compression, kind, tags)
     full_ifds = _read_ifds(header)
     header.unlink()
-    factors = overview_levels(width, height)
-    overview_paths = [scratch.with_name(f"{scratch.stem}.ovr{f}.tif") for f in factors]
-    _write_overviews(bands, overview_paths, width, height, compression, kind, lambda f, m: progress(0.6 * f, m))
-
-    levels = [_full_resolution(full_ifds[0], bands, height, kind)]
-    for path in overview_paths:
-        levels.append(_overview_level(path))
+    for stale in scratch.parent.glob(f"{scratch.stem}.ovr*.tif"):  # a stopped call's overviews
+        stale.unlink()
+    overviews = _write_overviews(bands, scratch, width, height, compression, kind, lambda f, m: progress(0.5 * f, m))
+    levels = [_level(bands, height, kind, full_ifds[0].tags)]
+    for level_height, rows in overviews:
+        level = _level(rows, level_height, kind, None)
+        level.image = _subfile(_without(level.image, _PLACEMENT), 1)
+        level.mask = None if level.mask is None else _subfile(_without(level.mask, _PLACEMENT), 5)
+        levels.append(level)
     with atomic_path(dst) as tmp:
-        _assemble(tmp, levels, bigtiff, lambda f, m: progress(0.6 + 0.4 * f, m))
+        _assemble(tmp, levels, bigtiff, lambda f, m: progress(0.5 + 0.5 * f, m))
 
 
 # -- the overviews -------------------------------------------------------------------------------------------------
@@ -170,56 +173,57 @@ _CHUNK_PX = 4096  # columns of a band read at a time (tile-aligned)
 
 def _write_overviews(
     bands: Sequence[Path],
-    paths: Sequence[Path],
+    scratch: Path,
     width: int,
     height: int,
     compression: str,
     kind: Kind,
     progress: ProgressFn,
-) -> None:
-    """Each overview level of the raster in ``bands`` into its file of ``paths`` (factors 2, 4, ...), in one pass
-    over the bands; memory: a tile row of each level plus a band's first level (width x ~2 KiB)."""
-    if not paths:
-        return
-    with ExitStack() as stack:
-        stack.enter_context(rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_NUM_THREADS="ALL_CPUS"))
-        levels: list[_LevelOut] = []
-        w, h = width, height
-        for path in paths:
-            w, h = -(-w // 2), -(-h // 2)
-            profile = {**band_profile(compression, kind), "width": w, "height": h}
-            dst = stack.enter_context(rasterio.open(path, "w", **profile))
-            levels.append(_LevelOut(dst, w, h, kind))
-        chain = _AverageChain(levels) if kind == "rgb" else _NearestChain(levels)
-        y = 0
-        for n, band in enumerate(bands):
-            chain.add(_first_level(band, kind), y)
-            with rasterio.open(band) as src:
-                y += src.height
-            progress((n + 1) / len(bands), f"overviews: band {n + 1}/{len(bands)}")
-        if y != height:
-            raise ValueError(f"the bands hold {y} rows of a raster {height} rows high")
-        for level in levels:
-            level.flush()
+) -> list[tuple[int, list[Path]]]:
+    """Each overview level of the raster in ``bands`` (factors 2, 4, ... down to a tile) in one pass over the
+    bands: per level its height and its files, a tile row each; memory: a tile row of each level plus a band's
+    first level (width x ~2 KiB)."""
+    levels: list[_LevelOut] = []
+    w, h = width, height
+    for factor in overview_levels(width, height):
+        w, h = -(-w // 2), -(-h // 2)
+        levels.append(_LevelOut(scratch.with_name(f"{scratch.stem}.ovr{factor}"), w, h, compression, kind))
+    if not levels:
+        return []
+    chain = _AverageChain(levels) if kind == "rgb" else _NearestChain(levels)
+    y = 0
+    for n, band in enumerate(bands):
+        first, rows = _first_level(band, kind)
+        chain.add(first, y)
+        y += rows
+        progress((n + 1) / len(bands), f"overviews: band {n + 1}/{len(bands)}")
+    if y != height:
+        raise ValueError(f"the bands hold {y} rows of a raster {height} rows high")
+    for level in levels:
+        level.flush()
+    return [(level.height, level.paths) for level in levels]
 
 
-def _first_level(band: Path, kind: Kind) -> Any:
-    """A band's first overview level, a block of columns at a time: for a mosaic the 2x2 sums of its covered
-    pixels (h', w', 3) uint16 and their count (h', w') uint8, an odd last row or column summed alone; for a
-    frame index its even rows and columns."""
-    with rasterio.Env(GDAL_NUM_THREADS="ALL_CPUS"), rasterio.open(band) as src:
-        blocks = []
-        for x in range(0, src.width, _CHUNK_PX):
-            window = Window(x, 0, min(_CHUNK_PX, src.width - x), src.height)
+def _first_level(band: Path, kind: Kind) -> tuple[Any, int]:
+    """A band's first overview level, read a block of columns at a time, and the band's rows: for a mosaic the
+    2x2 sums of its covered pixels (h', w', 3) uint16 and their count (h', w') uint16, an odd last row or column
+    summed alone; for a frame index its even rows and columns."""
+    with rasterio.open(band) as src:
+        width, rows = src.width, src.height
+
+    def chunk(x: int) -> Any:  # a thread's own handle: a GDAL dataset is not shared between threads
+        window = Window(x, 0, min(_CHUNK_PX, width - x), rows)
+        with rasterio.open(band) as src:
             if kind == "index":
-                blocks.append(src.read(1, window=window)[::2, ::2])
-                continue
+                return src.read(1, window=window)[::2, ::2]
             rgb = np.moveaxis(src.read(window=window), 0, 2)
             covered = src.read_masks(1, window=window) > 0
-            blocks.append(_pool(np.where(covered[..., None], rgb, np.uint8(0)), covered.astype(np.uint8), np.uint16))
+        return _pool(np.where(covered[..., None], rgb, np.uint8(0)), covered.astype(np.uint8), np.uint16)
+
+    blocks = ordered_map(chunk, range(0, width, _CHUNK_PX), usable_cores(), noop_progress, "block")
     if kind == "index":
-        return np.concatenate(blocks, axis=1)
-    return np.concatenate([b[0] for b in blocks], axis=1), np.concatenate([b[1] for b in blocks], axis=1)
+        return np.concatenate(blocks, axis=1), rows
+    return (np.concatenate([b[0] for b in blocks], axis=1), np.concatenate([b[1] for b in blocks], axis=1)), rows
 
 
 def _pool(sums: np.ndarray, counts: np.ndarray, dtype: type) -> tuple[np.ndarray, np.ndarray]:
@@ -234,34 +238,51 @@ def _pool(sums: np.ndarray, counts: np.ndarray, dtype: type) -> tuple[np.ndarray
 
 
 class _LevelOut:
-    """One overview level's GeoTIFF, written a tile row (512 rows) at a time: a partial tile row written early
-    would be compressed and written twice."""
+    """One overview level, written a tile row (512 rows) at a time, each tile row a GeoTIFF of its own: a
+    partial tile row written early would be compressed and written twice, and the COG copies a level's files
+    one by one, deleting each (so the largest level never exists twice)."""
 
-    def __init__(self, dst: Any, width: int, height: int, kind: Kind) -> None:
-        self.dst, self.width, self.height, self.kind = dst, width, height, kind
+    def __init__(self, stem: Path, width: int, height: int, compression: str, kind: Kind) -> None:
+        self.stem, self.width, self.height, self.kind = stem, width, height, kind
+        self.profile = {**band_profile(compression, kind), "width": width}
         self.y = 0  # rows written
-        self.rows: list[tuple[np.ndarray, np.ndarray | None]] = []
-        self.pending = 0
+        self.values: list[np.ndarray] = []
+        self.covered: list[np.ndarray] = []
+        self.paths: list[Path] = []
 
     def add(self, values: np.ndarray, covered: np.ndarray | None) -> None:
-        self.rows.append((values, covered))
-        self.pending += values.shape[0]
-        if self.pending >= COG_BLOCK_PX:
-            self.flush()
+        self.values.append(values)
+        if covered is not None:
+            self.covered.append(covered)
+        while sum(v.shape[0] for v in self.values) >= COG_BLOCK_PX:
+            self._write(COG_BLOCK_PX)
 
     def flush(self) -> None:
-        if not self.pending:
-            return
-        values = np.concatenate([v for v, _ in self.rows])
-        window = Window(0, self.y, self.width, values.shape[0])
-        if self.kind == "index":
-            self.dst.write(values, 1, window=window)
-        else:
-            covered = np.concatenate([c for _, c in self.rows if c is not None])
-            self.dst.write(np.ascontiguousarray(np.moveaxis(values, 2, 0)), window=window)
-            self.dst.write_mask(covered.astype(np.uint8) * np.uint8(255), window=window)
-        self.y += values.shape[0]
-        self.rows, self.pending = [], 0
+        """Write the rows left (the level's last, partial tile row)."""
+        rows = sum(v.shape[0] for v in self.values)
+        if rows:
+            self._write(rows)
+        if self.y != self.height:
+            raise ValueError(f"an overview level {self.height} rows high was given {self.y}")
+
+    def _write(self, rows: int) -> None:
+        values = np.concatenate(self.values)
+        self.values = [values[rows:]]
+        path = self.stem.with_name(f"{self.stem.name}.{self.y:07d}.tif")
+        window = Window(0, 0, self.width, rows)
+        with (
+            rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_NUM_THREADS="ALL_CPUS"),
+            rasterio.open(path, "w", height=rows, **self.profile) as dst,
+        ):
+            if self.kind == "index":
+                dst.write(values[:rows], 1, window=window)
+            else:
+                covered = np.concatenate(self.covered)
+                self.covered = [covered[rows:]]
+                dst.write(np.ascontiguousarray(np.moveaxis(values[:rows], 2, 0)), window=window)
+                dst.write_mask(covered[:rows].astype(np.uint8) * np.uint8(255), window=window)
+        self.paths.append(path)
+        self.y += rows
 
 
 class _AverageChain:
@@ -293,9 +314,13 @@ class _AverageChain:
 
 
 def _average(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """(h, w, 3) uint8: sums / counts rounded half up (as GDAL rounds), 0 where nothing is covered."""
-    c = np.maximum(counts, 1).astype(np.uint64)[..., None]
-    return ((sums + c // 2) // c).astype(np.uint8)
+    """(h, w, 3) uint8: sums / counts rounded half up (as GDAL rounds), 0 where nothing is covered. Divided in
+    floating point (4x integer division's speed), exactly: a quotient's distance from the next integer, at
+    least 1 / count, is far above the rounding error (float32 for the first level's counts of 4 at most)."""
+    c = np.maximum(counts, 1)
+    quotient = (sums + (c // 2)[..., None]).astype(np.float32 if counts.dtype == np.uint16 else np.float64)
+    np.divide(quotient, c[..., None], out=quotient)
+    return quotient.astype(np.uint8)  # truncated: the floor of a positive number
 
 
 class _NearestChain:
@@ -405,41 +430,41 @@ def _subfile(tags: Tags, value: int) -> Tags:
 _SAME_IN_EVERY_BAND = (256, 258, 259, 262, 277, 284, 317, 322, 323, 339, 347, 530, 532, 42113)
 
 
-def _full_resolution(header: _Ifd, bands: Sequence[Path], height: int, kind: Kind) -> _Level:
-    """The full resolution: the header's IFD (GDAL wrote it for the whole raster, placed and tagged, with no
-    tiles), the tiles of the bands in order, and the first band's mask IFD made the raster's size."""
+def _level(files: Sequence[Path], height: int, kind: Kind, image: Tags | None) -> _Level:
+    """A level of the COG from ``files`` of its rows (512-row multiples but the last), ``height`` rows in all:
+    the tiles of the files in order under the image IFD ``image`` (the full resolution's, which GDAL wrote for
+    the whole raster, placed and tagged) or the first file's, and the first file's mask IFD, both made the
+    level's height."""
     sources: list[_Source] = []
     mask: Tags | None = None
-    for band in bands:
-        ifds = _read_ifds(band)
-        image = ifds[0]
+    rows = _row_count(height)
+    for path in files:
+        ifds = _read_ifds(path)
+        if image is None:
+            image = {**ifds[0].tags, 257: rows}
         for tag in _SAME_IN_EVERY_BAND:
-            if header.tags.get(tag) != image.tags.get(tag):
-                raise ValueError(f"{band.name} was not written as this COG's tiles (TIFF tag {tag} differs)")
-        band_mask = None
+            if image.get(tag) != ifds[0].tags.get(tag):
+                raise ValueError(f"{path.name} was not written as this COG's tiles (TIFF tag {tag} differs)")
+        file_mask = None
         if kind == "rgb":
             if len(ifds) < 2 or ifds[1].number(_SUBFILE_TYPE) != 4:
-                raise ValueError(f"{band.name} has no mask")
-            band_mask = _tiles(ifds[1])
+                raise ValueError(f"{path.name} has no mask")
+            file_mask = _tiles(ifds[1])
             if mask is None:
-                mask = {**_without(ifds[1].tags, {_TILE_OFFSETS, _TILE_BYTE_COUNTS}), 257: header.tags[257]}
-        sources.append(_Source(band, _tiles(image), band_mask))
+                mask = {**_without(ifds[1].tags, {_TILE_OFFSETS, _TILE_BYTE_COUNTS}), 257: rows}
+        sources.append(_Source(path, _tiles(ifds[0]), file_mask))
+    if image is None:
+        raise ValueError("a level needs at least one file")
     tiles = sum(len(s.image[0]) for s in sources)
-    across = -(-(header.number(256) or 0) // COG_BLOCK_PX)
+    across = -(-int(_Ifd(image).array(256)[0]) // COG_BLOCK_PX)
     if tiles != across * -(-height // COG_BLOCK_PX):
-        raise ValueError(f"the bands hold {tiles} tiles, not the {across} x {-(-height // COG_BLOCK_PX)} expected")
-    return _Level(_without(header.tags, {_TILE_OFFSETS, _TILE_BYTE_COUNTS}), mask, sources)
+        raise ValueError(f"the files hold {tiles} tiles, not the {across} x {-(-height // COG_BLOCK_PX)} expected")
+    return _Level(_without(image, {_TILE_OFFSETS, _TILE_BYTE_COUNTS}), mask, sources)
 
 
-def _overview_level(path: Path) -> _Level:
-    """An overview level's GeoTIFF as a level of the COG: its IFDs marked reduced (and mask), nothing placed."""
-    ifds = _read_ifds(path)
-    drop = {_TILE_OFFSETS, _TILE_BYTE_COUNTS, *_PLACEMENT}
-    image = _subfile(_without(ifds[0].tags, drop), 1)
-    if len(ifds) < 2:
-        return _Level(image, None, [_Source(path, _tiles(ifds[0]), None)])
-    mask = _subfile(_without(ifds[1].tags, drop), 5)
-    return _Level(image, mask, [_Source(path, _tiles(ifds[0]), _tiles(ifds[1]))])
+def _row_count(height: int) -> tuple[int, int, bytes]:
+    """The ImageLength entry of ``height`` rows (SHORT below 65536, as libtiff writes it)."""
+    return (3, 1, struct.pack("<H", height)) if height < 65536 else (4, 1, struct.pack("<I", height))
 
 
 def _ghost(masked: bool) -> bytes:
