@@ -1,15 +1,15 @@
 """A gigapixel mosaic's COG assembled from its bands, with no second copy of the mosaic on disk.
 
 GDAL's COG driver copies a whole GeoTIFF with its overviews into the COG: while it writes, the scratch mosaic,
-its overviews and the growing COG are all on disk (a 2.7 Gpx strip peaked at 2.5x its inputs and outputs).
+its overviews and the growing COG are all on disk (a 2.55 Gpx strip peaked at 2.5x its inputs and outputs).
 Here the bands of rows the parts composed are written from the start as the COG's own tiles (the COG's codec,
-tile size and interleaving, :func:`open_cog_band_writer`), the overviews are computed from the bands (GDAL's
-masked average, or nearest for a frame index) into one small GeoTIFF per level, and the COG is then put
-together byte by byte: header and every IFD first, then the tiles, smallest overview first and full resolution
-last, as GDAL's COG driver lays them out (its ghost header, block leaders and trailers, mask tiles interleaved
-with the imagery). Each band is deleted once its tiles are copied, so the disk holds the bands or the COG,
-not both: the peak is the COG plus a band. No tile is compressed twice: GDAL compresses each once, on every
-core, as the bands and overview levels are written.
+tile size and interleaving, :func:`open_cog_band_writer`), the overviews are computed from the bands in one
+pass (GDAL's masked average, or nearest for a frame index) into a small GeoTIFF per tile row of each level, and
+the COG is then put together byte by byte: header and every IFD first, then the tiles, smallest overview first
+and full resolution last, as GDAL's COG driver lays them out (its ghost header, block leaders and trailers,
+mask tiles interleaved with the imagery). Each file is deleted once its tiles are copied, so the disk holds the
+bands or the COG, not both: the peak is the COG plus a band. No tile is compressed twice: GDAL compresses each
+once, on every core, as the bands and overview rows are written.
 """
 
 from __future__ import annotations
@@ -99,10 +99,9 @@ def band_fits(path: Path, width: int, rows: int, compression: str, kind: Kind) -
     except (OSError, ValueError, struct.error):
         return False
     image = ifds[0]
+    codec = band_profile(compression, kind)["compress"]
     expected = {
-        259: {"jpeg": 7, "deflate": 8, "zstd": 50000, "lzw": 5}[
-            compression if kind == "rgb" or compression != "jpeg" else "deflate"
-        ],
+        259: {"jpeg": 7, "deflate": 8, "zstd": 50000, "lzw": 5}[codec],
         277: 3 if kind == "rgb" else 1,
         284: 1,
         322: COG_BLOCK_PX,
@@ -110,8 +109,8 @@ def band_fits(path: Path, width: int, rows: int, compression: str, kind: Kind) -
         256: width,
         257: rows,
     }
-    if kind == "rgb" and compression != "jpeg":
-        expected[317] = 2
+    if kind == "rgb" and codec != "jpeg":
+        expected[317] = 2  # horizontal differencing
     if any(image.number(tag) != value for tag, value in expected.items()):
         return False
     return kind == "index" or (len(ifds) > 1 and ifds[1].number(254) == 4)
@@ -286,9 +285,10 @@ class _LevelOut:
 
 
 class _AverageChain:
-    """The masked average of every level from the first level's sums and counts, exactly (a level's sums are
-    its parent's summed, never an average of averages), as GDAL's "average" over a mask computes it from the
-    full resolution."""
+    """The masked average of every level from the first level's sums and counts (a level's sums are its
+    parent's summed, never an average of averages): GDAL's "average" over a mask from the full resolution,
+    exactly where each level halves an even size (across an odd one GDAL's windows are W / ceil(W / 2) px,
+    weighing the pixels they cut, and drift up to a pixel from the 2x2 blocks)."""
 
     def __init__(self, levels: list[_LevelOut]) -> None:
         self.levels = levels
