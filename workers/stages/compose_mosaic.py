@@ -163,7 +163,7 @@ def finish(
     ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
 ) -> dict[str, Any]:
     """Move the bands into the scratch GeoTIFF (each deleted once copied), then write ``mosaic.tif`` (COG, RGB +
-    mask)."""
+    mask); past SCRATCH_RAW_MAX_PX assemble both COGs from the bands instead (:func:`_assemble_cogs`)."""
     geo = ws.load_georef()
     raw = _raw_bands(geo)
     for key in records:  # bands a stopped finish had already copied (and deleted): composed again here
