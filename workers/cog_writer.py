@@ -37,7 +37,7 @@ Kind = Literal["rgb", "index"]  # a 3-band uint8 mosaic with its mask (average),
 def band_profile(compression: str, kind: Kind) -> dict[str, Any]:
     """GTiff creation options whose tiles are those of ``translate_to_cog``'s COG (``translate_index_to_cog``'s
     for an index): the same codec, level, predictor, JPEG quality and colour space, 512 px tiles,
-    pixel-interleaved."""
+    pixel-interleaved, empty tiles left out."""
     profile: dict[str, Any] = {
         "driver": "GTiff",
         "tiled": True,
@@ -45,6 +45,9 @@ def band_profile(compression: str, kind: Kind) -> dict[str, Any]:
         "blockysize": COG_BLOCK_PX,
         "BIGTIFF": "IF_SAFER",
         "num_threads": "ALL_CPUS",
+        # a tile with no data at all (zeros, nothing covered) is not stored, as GDAL's COG driver leaves it out
+        # with SPARSE_OK: its offset and byte count stay 0 through the COG, and readers see zeros, masked
+        "sparse_ok": True,
     }
     if kind == "index":
         codec = "deflate" if compression == "jpeg" else compression
