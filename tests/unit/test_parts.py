@@ -60,34 +60,3 @@ def test_parts_done_are_not_redone_and_the_outputs_are_the_same(tmp_path: Path) 
         np.testing.assert_array_equal(src.read(), before)
     summary = ws.load_stage_report("detect_features")["parts"]  # type: ignore[index]
     assert summary["count"] == 4 and sum(v["parts"] for v in summary["by"].values()) == 4
-
-
-def test_a_large_mosaics_compressed_scratch_gives_the_same_cog(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Past SCRATCH_RAW_MAX_PX the bands and the scratch mosaic are ZSTD-compressed (a gigapixel strip's would
-    take 4 B/px raw): composing again that way gives the same COG, and the finish leaves no band behind."""
-    from workers.stages import compose_mosaic
-
-    make_flight(tmp_path / "frames", n_frames=3, frame_size=(320, 240), seed=4)
-    process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 320, "block_px": 256})
-    ws = JobWorkspace(tmp_path / "job")
-    with rasterio.open(ws.mosaic_path()) as src:
-        raw = src.read(masked=True)
-    monkeypatch.setattr(compose_mosaic, "SCRATCH_RAW_MAX_PX", 0)
-    written: list[str | None] = []
-    writer = compose_mosaic.open_block_writer
-
-    def spy(*args: object, compress: str | None = "deflate") -> object:
-        written.append(compress)
-        return writer(*args, compress=compress)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(compose_mosaic, "open_block_writer", spy)
-    ws.forget_stage_report("compose_mosaic")
-    for band in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
-        band.unlink()
-    run_stage(ws, "mosaic", "compose_mosaic")
-    assert written and set(written) == {"zstd"}  # every band and the scratch
-    with rasterio.open(ws.mosaic_path()) as src:
-        again = src.read(masked=True)
-    np.testing.assert_array_equal(again.mask, raw.mask)
-    np.testing.assert_array_equal(again.filled(0), raw.filled(0))
-    assert not list((ws.root / "parts" / "compose_mosaic").glob("*.tif"))

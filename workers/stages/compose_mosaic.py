@@ -3,10 +3,12 @@
 
 The plan measures what every part shares: the gains and the coverage from a low-resolution render, and the
 seams (a multiband mosaic is cut along them; a feathered one's seam visibility is measured on them). Each part
-composes one band of rows (``block_px`` high) into a file of its own (``.npy`` planes; a ZSTD GeoTIFF past
-SCRATCH_RAW_MAX_PX), and the band's frame index (which frame each pixel came from) into another; the finish
-copies the bands into the scratch GeoTIFFs, builds the overviews and writes both COGs. Memory depends on the
-band's width and the frames' size, never on the size of the mosaic.
+composes one band of rows (``block_px`` high) into a file of its own (``.npy`` planes), and the band's frame
+index (which frame each pixel came from) into another; the finish copies the bands into the scratch GeoTIFFs,
+builds the overviews and writes both COGs. Past SCRATCH_RAW_MAX_PX (a gigapixel strip) a band is a GeoTIFF of
+the COG's own tiles (a multiple of 512 rows), and the finish assembles the COGs from the bands themselves
+(:mod:`workers.cog_writer`): no scratch mosaic, so the disk holds the bands or the COGs, not both. Memory depends
+on the band's width and the frames' size, never on the size of the mosaic.
 """
 
 from __future__ import annotations
@@ -34,11 +36,13 @@ from workers.algorithms.mosaic import (
     seam_points,
     seam_visibility,
 )
+from workers.cog_writer import band_fits, open_cog_band_writer, open_cog_index_band_writer, write_cog_from_bands
 from workers.config import MosaicConfig
 from workers.parallel import RecentCache, ordered_map, thread_count
 from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import (
+    COG_BLOCK_PX,
     open_band_reader,
     open_block_writer,
     open_index_reader,
@@ -86,7 +90,7 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     if cfg.ccd_segments > 1:
         shared["ccd_gains"] = _ccd_gains(ws, cfg.ccd_segments).tolist()
     ws.save_part_inputs(STAGE, shared)
-    return [f"{y:07d}" for y in range(0, geo.height, cfg.block_px)]
+    return [f"{y:07d}" for y in range(0, geo.height, _band_rows(cfg, geo))]
 
 
 def _ccd_gains(ws: JobWorkspace, segments: int) -> np.ndarray:
@@ -128,25 +132,30 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
             )
         return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette, columns)
 
-    height = min(cfg.block_px, geo.height - y)
-    windows = [(x, y, min(cfg.block_px, geo.width - x), height) for x in range(0, geo.width, cfg.block_px)]
+    rows = _band_rows(cfg, geo)
+    height = min(rows, geo.height - y)
+    windows = [  # block_px square, row after row (one row of them but in a gigapixel mosaic's band)
+        (x, y + dy, min(cfg.block_px, geo.width - x), min(cfg.block_px, height - dy))
+        for dy in range(0, height, cfg.block_px)
+        for x in range(0, geo.width, cfg.block_px)
+    ]
     # the bands a process composes at once share its cores; a mosaic of fewer bands than cores (a wide strip)
     # composes the windows of each band on the cores left
-    bands = math.ceil(geo.height / cfg.block_px)
+    bands = math.ceil(geo.height / rows)
     inner = max(1, thread_count(cfg.threads) // max(1, min(bands, thread_count(cfg.threads))))
     results = ordered_map(one, windows, inner, noop_progress, "window")
     if _raw_bands(geo):
         _save_raw_band(ws, y, geo.width, height, windows, results)
         return {"rows": height}
-    with (
+    with (  # the COGs' own tiles, which the finish copies into them (cog_writer)
         atomic_path(ws.compose_band_path(y)) as tmp,
         atomic_path(ws.index_band_path(y)) as tmp_index,
-        open_block_writer(tmp, geo.width, height, None, None, compress=_codec(geo)) as write,
-        open_index_writer(tmp_index, geo.width, height, None, None, compress=_codec(geo)) as write_index,
+        open_cog_band_writer(tmp, geo.width, height, cfg.cog_compression) as write,
+        open_cog_index_band_writer(tmp_index, geo.width, height, cfg.cog_compression) as write_index,
     ):
-        for (x, _, w, h), (rgb, mask, index) in zip(windows, results, strict=True):
-            write(Window(x, 0, w, h), rgb, mask)
-            write_index(Window(x, 0, w, h), _index_values(index))
+        for (x, wy, w, h), (rgb, mask, index) in zip(windows, results, strict=True):
+            write(Window(x, wy - y, w, h), rgb, mask)
+            write_index(Window(x, wy - y, w, h), _index_values(index))
     return {"rows": height}
 
 
@@ -154,12 +163,15 @@ def finish(
     ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
 ) -> dict[str, Any]:
     """Move the bands into the scratch GeoTIFF (each deleted once copied), then write ``mosaic.tif`` (COG, RGB +
-    mask)."""
+    mask); past SCRATCH_RAW_MAX_PX assemble both COGs from the bands instead (:func:`_assemble_cogs`)."""
     geo = ws.load_georef()
     raw = _raw_bands(geo)
     for key in records:  # bands a stopped finish had already copied (and deleted): composed again here
         if not (ws.compose_band_path(int(key), raw).exists() and ws.index_band_path(int(key), raw).exists()):
             run_part(ws, cfg, key)
+    if not raw:  # a gigapixel mosaic: the COGs assembled from the bands, with no scratch mosaic
+        _assemble_cogs(ws, cfg, records, progress)
+        return _finished(ws, cfg, records, progress)
     tmp, tmp_index = ws.mosaic_scratch_path(), ws.frame_index_scratch_path()
     transform = geo.transform if geo.georeferenced else None
     with (
@@ -182,12 +194,21 @@ def finish(
             progress(0.15 * (n + 1) / len(records), f"band {n + 1}/{len(records)}")
     progress(0.15, "writing COGs with overviews")  # copying the bands took ~10 % of finish, the mosaic's COG ~70 %
     frames = ws.load_composed_frames()
-    description = f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"
+    description = _description(cfg)
     translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression, tags={"TIFFTAG_IMAGEDESCRIPTION": description})
     progress(0.8, "writing the frame index")
     translate_index_to_cog(tmp_index, ws.frame_index_path(), cfg.cog_compression, tags=_index_tags(frames))
     tmp.unlink(missing_ok=True)
     tmp_index.unlink(missing_ok=True)
+    return _finished(ws, cfg, records, progress)
+
+
+def _finished(
+    ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], progress: ProgressFn
+) -> dict[str, Any]:
+    """With both COGs written: the seams measured on the mosaic, the native copies removed, the report."""
+    geo = ws.load_georef()
+    frames = ws.load_composed_frames()
     shared = ws.load_part_inputs(STAGE)
     visibility = None
     if _has_seams(cfg):
@@ -216,8 +237,63 @@ def finish(
 def _raw_bands(geo: Any) -> bool:
     """Bands kept as ``.npy`` planes (no GDAL) whenever the scratch GeoTIFFs are uncompressed (:func:`_codec`):
     on the Brighton strip the bands' tiled GeoTIFF writes and reads cost 0.35 s of CPU, their ``.npy`` 0.15 s, for
-    the same COGs to the byte's value. Past SCRATCH_RAW_MAX_PX they are ZSTD GeoTIFFs (a third of the disk)."""
+    the same COGs to the byte's value. Past SCRATCH_RAW_MAX_PX they are GeoTIFFs of the COGs' own tiles
+    (:func:`_assemble_cogs`)."""
     return _codec(geo) is None
+
+
+def _band_rows(cfg: MosaicConfig, geo: Any) -> int:
+    """Rows of a part's band: ``block_px``, rounded up to a multiple of the COG's 512 px tiles past
+    SCRATCH_RAW_MAX_PX, where the band's tiles are copied into the COG as they are."""
+    return cfg.block_px if _raw_bands(geo) else -(-cfg.block_px // COG_BLOCK_PX) * COG_BLOCK_PX
+
+
+def _assemble_cogs(
+    ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], progress: ProgressFn
+) -> None:
+    """``mosaic.tif`` and ``frame_index.tif`` put together from the bands' tiles (:mod:`workers.cog_writer`),
+    each band deleted once copied: the disk's peak is the COGs and a band, where copying the bands into a
+    scratch mosaic and that into a COG held about three mosaics (13.3 GB for 5.9 GB of frames and COGs on
+    bench/strips.py's 40 frames). A finish stopped midway composes the bands it had deleted again (above, and
+    here those an older version wrote otherwise) and writes both COGs anew."""
+    geo = ws.load_georef()
+    for key, record in records.items():
+        y, height = int(key), int(record["rows"])
+        fits = band_fits(ws.compose_band_path(y), geo.width, height, cfg.cog_compression, "rgb")
+        if not (fits and band_fits(ws.index_band_path(y), geo.width, height, cfg.cog_compression, "index")):
+            run_part(ws, cfg, key)
+    rows = [int(key) for key in records]
+    write = partial(
+        write_cog_from_bands,
+        width=geo.width,
+        height=geo.height,
+        crs=geo.epsg,
+        transform=geo.transform if geo.georeferenced else None,
+        compression=cfg.cog_compression,
+    )
+    progress(0.0, "writing the mosaic's COG")
+    write(
+        ws.mosaic_path(),
+        [ws.compose_band_path(y) for y in rows],
+        kind="rgb",
+        tags={"TIFFTAG_IMAGEDESCRIPTION": _description(cfg)},
+        scratch=ws.mosaic_scratch_path(),
+        progress=lambda f, m: progress(0.8 * f, m),
+    )
+    progress(0.8, "writing the frame index")
+    write(
+        ws.frame_index_path(),
+        [ws.index_band_path(y) for y in rows],
+        kind="index",
+        tags=_index_tags(ws.load_composed_frames()),
+        scratch=ws.frame_index_scratch_path(),
+        progress=lambda f, m: progress(0.8 + 0.15 * f, m),
+    )
+
+
+def _description(cfg: MosaicConfig) -> str:
+    """``mosaic.tif``'s TIFF description."""
+    return f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"
 
 
 def _save_raw_band(

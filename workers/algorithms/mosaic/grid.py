@@ -12,10 +12,12 @@ from workers.algorithms.mosaic.alignment import apply_homography
 
 MAX_OUTPUT_PIXELS = 4_000_000_000  # ortho mode: a larger grid means a ground range gone wrong
 MAX_SPREAD = 1000.0  # planar: a grid this many times the frames' own area means the alignment broke
-# disk a mosaic needs per output px while it is written: the scratch GeoTIFF (3 bands and a mask,
-# uncompressed up to SCRATCH_RAW_MAX_PX, ZSTD beyond) with its overviews (a third more), and the COG with its
-# overviews (measured: about 1.2 B/px on drone mosaics, 1.7 on a synthetic strip's busy ground, deflate with
-# predictor; 2 allows for busier ground). The 2.5 Gpx strip of bench/strips.py peaked at 5.05 B/px.
+# disk a mosaic needs per output px while it is written: up to SCRATCH_RAW_MAX_PX the scratch GeoTIFF (3 bands
+# and a mask, uncompressed) with its overviews (a third more) and the COG with its overviews (measured: about
+# 1.2 B/px on drone mosaics, 1.7 on a synthetic strip's busy ground, deflate with predictor; 2 allows for busier
+# ground). Past it the bands are the COG's own tiles, assembled into it and deleted as they are copied
+# (workers/cog_writer.py): the COG and a band, 1.01x the COGs on bench/cog_disk.py's 0.6 Gpx mosaic, where the
+# scratch path peaked at 2.74x (the 2.5 Gpx strip of bench/strips.py at 5.05 B/px).
 SCRATCH_RAW_MAX_PX = 500_000_000
 COG_BYTES_PER_PX = 2.0
 
@@ -23,8 +25,9 @@ COG_BYTES_PER_PX = 2.0
 def disk_needed(width: int, height: int) -> int:
     """Bytes of free disk a ``width`` x ``height`` mosaic needs while it is written (an estimate)."""
     px = width * height
-    scratch = (4.0 if px <= SCRATCH_RAW_MAX_PX else 2.5) * 4 / 3
-    return int(px * (scratch + COG_BYTES_PER_PX))
+    if px > SCRATCH_RAW_MAX_PX:
+        return int(px * COG_BYTES_PER_PX * 1.1)  # the COGs, a band and the overviews' last tile rows
+    return int(px * (4.0 * 4 / 3 + COG_BYTES_PER_PX))
 
 
 def output_size_problem(width: int, height: int, frames_px: float | None, free_bytes: int) -> str | None:

@@ -1,0 +1,256 @@
+"""A gigapixel mosaic's COG assembled from its bands (workers/cog_writer.py), against GDAL's COG driver writing
+the same raster (raster_io.translate_to_cog, the small mosaics' path) as the oracle."""
+
+from __future__ import annotations
+
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.windows import Window
+from rio_cogeo.cogeo import cog_validate
+from rio_tiler.constants import WGS84_CRS
+from rio_tiler.io import Reader
+
+from tests.scenes import make_flight
+from workers import cog_writer
+from workers.cog_writer import open_cog_band_writer, open_cog_index_band_writer, write_cog_from_bands
+from workers.pipeline import process_directory, run_stage
+from workers.raster_io import open_block_writer, open_index_writer, translate_index_to_cog, translate_to_cog
+from workers.workspace import JobWorkspace
+
+TRANSFORM = [0.5, 0.0, 500000.0, 0.0, -0.5, 6000000.0]  # 0.5 m px in UTM 33N
+EPSG = 32633
+
+
+def scene(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A smooth textured picture (h, w, 3) uint8, an elliptical coverage mask and a frame index of blocks."""
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+    rgb = np.stack(
+        [(xx * 0.2 + yy * 0.1) % 256, 128 + 90 * np.sin(xx / 37) * np.cos(yy / 23), (xx * yy / 900) % 200 + 30],
+        axis=-1,
+    ).astype(np.uint8)
+    mask = ((xx - width / 2) / (0.48 * width)) ** 2 + ((yy - height / 2) / (0.45 * height)) ** 2 < 1
+    index = (((xx // 97) + 13 * (yy // 61)) % 40 + 1).astype(np.uint16) * mask
+    return rgb, mask, index
+
+
+def write_bands(
+    folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray, codec: str
+) -> tuple[list[Path], list[Path]]:
+    """The raster as 512-row bands, as compose_mosaic's parts write them, 256 px windows at a time."""
+    height, width = mask.shape
+    bands, indexes = [], []
+    for y in range(0, height, 512):
+        h = min(512, height - y)
+        band, band_index = folder / f"band_{y}.tif", folder / f"index_{y}.tif"
+        with (
+            open_cog_band_writer(band, width, h, codec) as write,
+            open_cog_index_band_writer(band_index, width, h, codec) as write_index,
+        ):
+            for dy in range(0, h, 256):
+                for x in range(0, width, 256):
+                    w, hh = min(256, width - x), min(256, h - dy)
+                    rows, cols = slice(y + dy, y + dy + hh), slice(x, x + w)
+                    write(Window(x, dy, w, hh), rgb[rows, cols], mask[rows, cols])
+                    write_index(Window(x, dy, w, hh), index[rows, cols])
+        bands.append(band)
+        indexes.append(band_index)
+    return bands, indexes
+
+
+def gdal_cogs(folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray, codec: str) -> tuple[Path, Path]:
+    """The oracle: the same raster through a scratch GeoTIFF and GDAL's COG driver."""
+    height, width = mask.shape
+    with open_block_writer(folder / "scratch.tif", width, height, EPSG, TRANSFORM, compress=None) as write:
+        write(Window(0, 0, width, height), rgb, mask)
+    translate_to_cog(folder / "scratch.tif", folder / "gdal.tif", codec, tags={"TIFFTAG_IMAGEDESCRIPTION": "m"})
+    with open_index_writer(folder / "scratch_index.tif", width, height, EPSG, TRANSFORM, compress=None) as write_index:
+        write_index(Window(0, 0, width, height), index)
+    tags = {"TIFFTAG_IMAGEDESCRIPTION": "i", "FRAME_1": "a.tif"}
+    translate_index_to_cog(folder / "scratch_index.tif", folder / "gdal_index.tif", codec, tags=tags)
+    return folder / "gdal.tif", folder / "gdal_index.tif"
+
+
+def assemble(
+    folder: Path, bands: list[Path], indexes: list[Path], size: tuple[int, int], codec: str, bigtiff: bool | None = None
+) -> tuple[Path, Path]:
+    """Both COGs from their bands, placed and tagged as :func:`gdal_cogs` places and tags them."""
+    write = partial(
+        write_cog_from_bands, width=size[0], height=size[1], crs=EPSG, transform=TRANSFORM, compression=codec
+    )
+    tags = {"TIFFTAG_IMAGEDESCRIPTION": "m"}
+    write(folder / "ours.tif", bands, kind="rgb", tags=tags, scratch=folder / "m.tmp.tif", bigtiff=bigtiff)
+    tags = {"TIFFTAG_IMAGEDESCRIPTION": "i", "FRAME_1": "a.tif"}
+    write(folder / "ours_index.tif", indexes, kind="index", tags=tags, scratch=folder / "i.tmp.tif")
+    return folder / "ours.tif", folder / "ours_index.tif"
+
+
+def overview(path: Path, factor: int) -> np.ma.MaskedArray:
+    with rasterio.open(path) as src:
+        shape = (src.count, -(-src.height // factor), -(-src.width // factor))
+        return src.read(out_shape=shape, masked=True)
+
+
+def same_file_but_pixels(ours: Path, theirs: Path) -> None:
+    """Valid COGs with the same placement, tags (but the time written), layout, codec and overview factors."""
+    valid, errors, warnings = cog_validate(ours, quiet=True)
+    assert valid and not errors and not warnings, (errors, warnings)
+    with rasterio.open(ours) as a, rasterio.open(theirs) as b:
+        assert (a.width, a.height, a.count, a.dtypes, a.nodata) == (b.width, b.height, b.count, b.dtypes, b.nodata)
+        assert a.crs == b.crs and a.transform == b.transform and a.block_shapes == b.block_shapes
+        assert a.overviews(1) == b.overviews(1) and a.overviews(1)
+        assert a.mask_flag_enums == b.mask_flag_enums
+        assert a.tags(ns="IMAGE_STRUCTURE") == b.tags(ns="IMAGE_STRUCTURE")  # LAYOUT=COG, codec, predictor
+        ours_tags, their_tags = a.tags(), b.tags()
+        assert ours_tags.pop("TIFFTAG_DATETIME") and their_tags.pop("TIFFTAG_DATETIME")
+        assert ours_tags == their_tags
+
+
+def block_mean(rgb: np.ndarray, mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """The oracle of an overview level: over each ``factor`` x ``factor`` block (the last ones cut by the edge),
+    the mean of the covered pixels rounded half up, and whether any is covered (float-free, int64)."""
+    h, w = mask.shape
+    rows, cols = -(-h // factor), -(-w // factor)
+    covered = np.zeros((rows * factor, cols * factor), np.int64)
+    covered[:h, :w] = mask
+    values = np.zeros((rows * factor, cols * factor, 3), np.int64)
+    values[:h, :w] = rgb * mask[..., None]
+    count = covered.reshape(rows, factor, cols, factor).sum(axis=(1, 3))
+    total = values.reshape(rows, factor, cols, factor, 3).sum(axis=(1, 3))
+    return (2 * total + count[..., None]) // (2 * np.maximum(count, 1)[..., None]), count > 0
+
+
+@pytest.mark.parametrize(("codec", "size", "bigtiff"), [("deflate", (1300, 1100), None), ("jpeg", (1111, 1027), True)])
+def test_a_cog_from_bands_has_gdals_pixels_mask_and_tags(
+    tmp_path: Path, codec: str, size: tuple[int, int], bigtiff: bool | None
+) -> None:
+    """The full resolution, its mask and the frame index are those of GDAL's COG driver to the pixel (JPEG too:
+    the same tiles coded the same way); each overview is the mean of the covered pixels of its block of the full
+    resolution (JPEG: as near it as the COG driver's), close to the COG driver's, and the frame index's top-left
+    pixel; the bands are gone and no scratch is left."""
+    width, height = size
+    rgb, mask, index = scene(width, height)
+    gdal, gdal_index = gdal_cogs(tmp_path, rgb, mask, index, codec)
+    bands, indexes = write_bands(tmp_path, rgb, mask, index, codec)
+    ours, ours_index = assemble(tmp_path, bands, indexes, size, codec, bigtiff=bigtiff)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("band", "index", "m.", "i.", ".o"))) == []
+    same_file_but_pixels(ours, gdal)
+    same_file_but_pixels(ours_index, gdal_index)
+    assert (ours.read_bytes()[2] == 43) == bool(bigtiff)  # BigTIFF when asked (or past 4 GiB), else classic
+    with rasterio.open(ours) as a, rasterio.open(gdal) as b:
+        mine, theirs = a.read(masked=True), b.read(masked=True)
+        np.testing.assert_array_equal(mine.mask, theirs.mask)
+        np.testing.assert_array_equal(mine.filled(0), theirs.filled(0))
+        factors = a.overviews(1)
+    np.testing.assert_array_equal(rasterio.open(ours_index).read(1), rasterio.open(gdal_index).read(1))
+    for factor in factors:
+        level = overview(ours, factor)
+        expected, covered = block_mean(rgb, mask, factor)
+        np.testing.assert_array_equal(~np.ma.getmaskarray(level)[0], covered)
+        error = np.abs(np.moveaxis(level.data, 0, 2).astype(np.int64) - expected)[covered]
+        theirs = overview(gdal, factor)
+        if codec == "jpeg":  # both lossy: as close to the exact mean as the COG driver's (2-4 grey levels here)
+            coded = covered & ~np.ma.getmaskarray(theirs)[0]
+            their_error = np.abs(np.moveaxis(theirs.data, 0, 2).astype(np.int64) - expected)[coded]
+            assert error.mean() < 1.1 * their_error.mean(), (factor, error.mean(), their_error.mean())
+        else:
+            assert error.max() == 0, factor
+        both = ~level.mask & ~theirs.mask
+        assert (level.mask != theirs.mask).mean() < 0.01, factor
+        assert np.abs(level.data.astype(np.int16) - theirs.data)[both].mean() < 3.0, factor
+        np.testing.assert_array_equal(overview(ours_index, factor).data[0], index[::factor, ::factor])
+
+
+def test_rio_tiler_reads_the_same_tiles_from_its_overviews(tmp_path: Path) -> None:
+    """A web map's tiles at a zoom that reads the overviews (the whole raster in one 256 px tile) and at one
+    that reads the full resolution, from the assembled COG and from GDAL's."""
+    rgb, mask, index = scene(1536, 1300)
+    gdal, _ = gdal_cogs(tmp_path, rgb, mask, index, "deflate")
+    ours, _ = assemble(tmp_path, *write_bands(tmp_path, rgb, mask, index, "deflate"), (1536, 1300), "deflate")
+    with Reader(str(ours)) as a, Reader(str(gdal)) as b:
+        assert a.info().overviews == b.info().overviews
+        west, south, east, north = a.get_geographic_bounds(WGS84_CRS)
+        assert a.minzoom < a.maxzoom
+        for zoom in (a.minzoom, a.maxzoom):  # the coarsest overview, the full resolution
+            tile = a.tms.tile((west + east) / 2, (south + north) / 2, zoom)
+            mine, theirs = a.tile(tile.x, tile.y, zoom), b.tile(tile.x, tile.y, zoom)
+            np.testing.assert_array_equal(mine.mask, theirs.mask)
+            assert np.abs(mine.data.astype(np.int16) - theirs.data).mean() < 1.0, zoom
+
+
+def read_outputs(ws: JobWorkspace) -> dict[str, Any]:
+    with rasterio.open(ws.mosaic_path()) as src, rasterio.open(ws.frame_index_path()) as index:
+        factor = src.overviews(1)[0]
+        return {"mosaic": src.read(masked=True), "index": index.read(1), "overview": overview(ws.mosaic_path(), factor)}
+
+
+def same_outputs(ws: JobWorkspace, before: dict[str, Any]) -> None:
+    """The same full resolution, mask and frame index as ``before``, overviews close to it, valid COGs, and
+    neither band nor scratch nor half-written file left."""
+    after = read_outputs(ws)
+    np.testing.assert_array_equal(after["mosaic"].mask, before["mosaic"].mask)
+    np.testing.assert_array_equal(after["mosaic"].filled(0), before["mosaic"].filled(0))
+    np.testing.assert_array_equal(after["index"], before["index"])
+    # across an odd height (1209 px here) GDAL averages windows of H / ceil(H / 2) = 1.998 px, weighing the
+    # pixels they cut; the 2x2 blocks drift a row from them: 3 grey levels apart on this busy texture
+    both = ~after["overview"].mask & ~before["overview"].mask
+    assert np.abs(after["overview"].data.astype(np.int16) - before["overview"].data)[both].mean() < 4.0
+    assert cog_validate(ws.mosaic_path(), quiet=True)[:2] == (True, [])
+    assert cog_validate(ws.frame_index_path(), quiet=True)[:2] == (True, [])
+    left = [p.name for p in ws.root.rglob("*.tif") if "tmp" in p.name or p.name.startswith((".", "band_", "index_"))]
+    assert not left, left
+
+
+def test_a_gigapixel_mosaic_is_composed_into_the_same_cogs_with_no_scratch_mosaic(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """compose_mosaic past SCRATCH_RAW_MAX_PX: bands of 512 rows (block_px 256 rounded up to the COG's tiles)
+    written as the COG's tiles and assembled into the same mosaic and frame index as the small mosaics' path.
+    Stopped midway (two bands copied into the COG and deleted), with a band an older version wrote as ZSTD and a
+    killed process's half-written COG beside it, the finish composes those bands again and writes the same
+    COGs."""
+    from workers.stages import compose_mosaic
+
+    make_flight(tmp_path / "frames", n_frames=6, frame_size=(640, 640), layout="grid", seed=5)
+    process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 640, "block_px": 256})
+    ws = JobWorkspace(tmp_path / "job")
+    before = read_outputs(ws)
+    assert before["mosaic"].shape[1] > 1024  # three bands or more
+    monkeypatch.setattr(compose_mosaic, "SCRATCH_RAW_MAX_PX", 0)
+    ws.forget_stage_report("compose_mosaic")
+    for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
+        record.unlink()
+    run_stage(ws, "mosaic", "compose_mosaic")
+    keys = ws.load_plan("compose_mosaic")
+    assert [ws.load_part("compose_mosaic", k)["rows"] for k in keys[:-1]] == [512] * (len(keys) - 1)
+    same_outputs(ws, before)
+
+    ws.forget_stage_report("compose_mosaic")
+    for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
+        record.unlink()
+    copy, copied = cog_writer._copy_tiles, list[str]()
+
+    def killed(out: Any, source: Any) -> int:
+        if source.path.name.startswith("band_") and len(copied) == 2:
+            raise RuntimeError("worker killed")
+        copied.extend([source.path.name] if source.path.name.startswith("band_") else [])
+        return copy(out, source)
+
+    monkeypatch.setattr(cog_writer, "_copy_tiles", killed)
+    with pytest.raises(RuntimeError, match="worker killed"):
+        run_stage(ws, "mosaic", "compose_mosaic")
+    monkeypatch.setattr(cog_writer, "_copy_tiles", copy)
+    folder = ws.root / "parts" / "compose_mosaic"
+    assert len(copied) == 2 and not any((folder / name).exists() for name in copied)
+    older = folder / f"band_{int(keys[2]):07d}.tif"  # not copied yet: now as an older version wrote it
+    with rasterio.open(older) as src:
+        width, height = src.width, src.height
+    with open_block_writer(older, width, height, None, None, compress="zstd") as write:
+        write(Window(0, 0, width, height), np.zeros((height, width, 3), np.uint8), np.ones((height, width), bool))
+    (ws.root / ".mosaic.tif.killed.tif").write_bytes(b"half a COG")  # what a killed process's atomic write leaves
+    run_stage(ws, "mosaic", "compose_mosaic")
+    same_outputs(ws, before)

@@ -1,0 +1,631 @@
+"""A gigapixel mosaic's COG assembled from its bands, with no second copy of the mosaic on disk.
+
+GDAL's COG driver copies a whole GeoTIFF with its overviews into the COG: while it writes, the scratch mosaic,
+its overviews and the growing COG are all on disk (a 2.55 Gpx strip peaked at 2.5x its inputs and outputs).
+Here the bands of rows the parts composed are written from the start as the COG's own tiles (the COG's codec,
+tile size and interleaving, :func:`open_cog_band_writer`), the overviews are computed from the bands in one
+pass (GDAL's masked average, or nearest for a frame index) into a small GeoTIFF per tile row of each level, and
+the COG is then put together byte by byte: header and every IFD first, then the tiles, smallest overview first
+and full resolution last, as GDAL's COG driver lays them out (its ghost header, block leaders and trailers,
+mask tiles interleaved with the imagery). Each file is deleted once its tiles are copied, so the disk holds the
+bands or the COG, not both: the peak is the COG plus a band. No tile is compressed twice: GDAL compresses each
+once, on every core, as the bands and overview rows are written.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO, Literal
+
+import numpy as np
+import rasterio
+from rasterio.crs import CRS
+from rasterio.transform import Affine
+from rasterio.windows import Window
+
+from workers.parallel import ordered_map, usable_cores
+from workers.raster_io import COG_BLOCK_PX, BlockWriter, IndexWriter, overview_levels, provenance_tags
+from workers.workspace import ProgressFn, atomic_path, noop_progress
+
+Kind = Literal["rgb", "index"]  # a 3-band uint8 mosaic with its mask (average), or a uint16 frame index (nearest)
+
+
+def band_profile(compression: str, kind: Kind) -> dict[str, Any]:
+    """GTiff creation options whose tiles are those of ``translate_to_cog``'s COG (``translate_index_to_cog``'s
+    for an index): the same codec, level, predictor, JPEG quality and colour space, 512 px tiles,
+    pixel-interleaved, empty tiles left out."""
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "tiled": True,
+        "blockxsize": COG_BLOCK_PX,
+        "blockysize": COG_BLOCK_PX,
+        "BIGTIFF": "IF_SAFER",
+        "num_threads": "ALL_CPUS",
+        # a tile with no data at all (zeros, nothing covered) is not stored, as GDAL's COG driver leaves it out
+        # with SPARSE_OK: its offset and byte count stay 0 through the COG, and readers see zeros, masked
+        "sparse_ok": True,
+    }
+    if kind == "index":
+        codec = "deflate" if compression == "jpeg" else compression
+        profile.update(count=1, dtype="uint16", nodata=0, compress=codec)
+    else:
+        codec = compression
+        profile.update(count=3, dtype="uint8", interleave="pixel", compress=codec)
+        if codec == "jpeg":
+            profile.update(photometric="YCBCR", jpeg_quality=90)
+        else:
+            profile.update(photometric="RGB", predictor=2)
+    if codec == "deflate":
+        profile["zlevel"] = 1
+    elif codec == "zstd":
+        profile["zstd_level"] = 1
+    return profile
+
+
+@contextmanager
+def open_cog_band_writer(path: Path, width: int, height: int, compression: str) -> Iterator[BlockWriter]:
+    """A band of a mosaic's rows as the COG will hold it (:func:`band_profile`), with its internal mask; yields
+    ``write(window, rgb, mask)`` as ``raster_io.open_block_writer`` does. Placed nowhere: the COG's header
+    places the mosaic."""
+    profile = {**band_profile(compression, "rgb"), "width": width, "height": height}
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+
+        def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
+            dst.write(np.ascontiguousarray(np.moveaxis(rgb, 2, 0)), window=window)
+            dst.write_mask(mask.astype(np.uint8) * np.uint8(255), window=window)
+
+        yield write
+
+
+@contextmanager
+def open_cog_index_band_writer(path: Path, width: int, height: int, compression: str) -> Iterator[IndexWriter]:
+    """The frame index of a band of rows as its COG will hold it; yields ``write(window, index)``."""
+    profile = {**band_profile(compression, "index"), "width": width, "height": height}
+    with rasterio.open(path, "w", **profile) as dst:
+
+        def write(window: Window, index: np.ndarray) -> None:
+            dst.write(np.ascontiguousarray(index, np.uint16), 1, window=window)
+
+        yield write
+
+
+def band_fits(path: Path, width: int, rows: int, compression: str, kind: Kind) -> bool:
+    """Whether ``path`` is a whole band that :func:`write_cog_from_bands` can copy tiles from: written by
+    :func:`open_cog_band_writer` (or the index one) for this codec, ``width`` x ``rows`` px. A band an older
+    version wrote some other way is composed again rather than copied into the COG."""
+    try:
+        ifds = _read_ifds(path)
+    except (OSError, ValueError, struct.error):
+        return False
+    image = ifds[0]
+    codec = band_profile(compression, kind)["compress"]
+    expected = {
+        259: {"jpeg": 7, "deflate": 8, "zstd": 50000, "lzw": 5}[codec],
+        277: 3 if kind == "rgb" else 1,
+        284: 1,
+        322: COG_BLOCK_PX,
+        323: COG_BLOCK_PX,
+        256: width,
+        257: rows,
+    }
+    if kind == "rgb" and codec != "jpeg":
+        expected[317] = 2  # horizontal differencing
+    if any(image.number(tag) != value for tag, value in expected.items()):
+        return False
+    return kind == "index" or (len(ifds) > 1 and ifds[1].number(254) == 4)
+
+
+def write_cog_from_bands(
+    dst: Path,
+    bands: Sequence[Path],
+    *,
+    width: int,
+    height: int,
+    crs: int | str | None,
+    transform: list[float] | None,
+    compression: str,
+    kind: Kind,
+    tags: Mapping[str, str],
+    scratch: Path,
+    progress: ProgressFn = noop_progress,
+    bigtiff: bool | None = None,
+) -> None:
+    """The COG of a ``width`` x ``height`` px raster at ``dst`` (atomically) from its ``bands`` of rows, top to
+    bottom, each written by :func:`open_cog_band_writer` (``kind`` "rgb") or :func:`open_cog_index_band_writer`
+    ("index") with this ``compression``; every band but the last a multiple of 512 rows. The bands are DELETED as
+    their tiles are copied (the COG takes their place on disk): a call stopped midway leaves some of them gone
+    and no ``dst``.
+
+    ``crs`` (EPSG code or WKT) and ``transform`` (rasterio's a..f) place it, as ``open_block_writer`` does;
+    ``tags`` are GDAL metadata items (``TIFFTAG_IMAGEDESCRIPTION`` and the like; provenance added as
+    ``translate_to_cog`` adds it). Overviews as GDAL builds them: factors 2, 4, ... down to one tile, the masked
+    average of a mosaic's pixels (its mask: any pixel covered), the top-left pixel of a frame index; they are
+    written a tile row per file named after ``scratch`` (``<stem>.ovr<factor>.<row>.tif``), each deleted once
+    copied. BigTIFF past 4 GiB (``bigtiff`` forces either way).
+    """
+    if not bands:
+        raise ValueError("a COG needs at least one band")
+    for stale in dst.parent.glob(f".{dst.name}.*"):  # an atomic write a killed process left behind
+        stale.unlink(missing_ok=True)
+    header = scratch.with_name(f"{scratch.stem}.header.tif")
+    _write_header(header, width, height, crs, transform, compression, kind, tags)
+    full_ifds = _read_ifds(header)
+    header.unlink()
+    for stale in scratch.parent.glob(f"{scratch.stem}.ovr*.tif"):  # a stopped call's overviews
+        stale.unlink()
+    overviews = _write_overviews(bands, scratch, width, height, compression, kind, lambda f, m: progress(0.5 * f, m))
+    levels = [_level(bands, height, kind, full_ifds[0].tags)]
+    for level_height, rows in overviews:
+        level = _level(rows, level_height, kind, None)
+        level.image = _subfile(_without(level.image, _PLACEMENT), 1)
+        level.mask = None if level.mask is None else _subfile(_without(level.mask, _PLACEMENT), 5)
+        levels.append(level)
+    with atomic_path(dst) as tmp:
+        _assemble(tmp, levels, bigtiff, lambda f, m: progress(0.5 + 0.5 * f, m))
+
+
+# -- the overviews -------------------------------------------------------------------------------------------------
+
+_CHUNK_PX = 4096  # columns of a band read at a time (tile-aligned)
+
+
+def _write_overviews(
+    bands: Sequence[Path],
+    scratch: Path,
+    width: int,
+    height: int,
+    compression: str,
+    kind: Kind,
+    progress: ProgressFn,
+) -> list[tuple[int, list[Path]]]:
+    """Each overview level of the raster in ``bands`` (factors 2, 4, ... down to a tile) in one pass over the
+    bands: per level its height and its files, a tile row each; memory: a tile row of each level plus a band's
+    first level (width x ~2 KiB)."""
+    levels: list[_LevelOut] = []
+    w, h = width, height
+    for factor in overview_levels(width, height):
+        w, h = -(-w // 2), -(-h // 2)
+        levels.append(_LevelOut(scratch.with_name(f"{scratch.stem}.ovr{factor}"), w, h, compression, kind))
+    if not levels:
+        return []
+    chain = _AverageChain(levels) if kind == "rgb" else _NearestChain(levels)
+    y = 0
+    for n, band in enumerate(bands):
+        first, rows = _first_level(band, kind)
+        chain.add(first, y)
+        y += rows
+        progress((n + 1) / len(bands), f"overviews: band {n + 1}/{len(bands)}")
+    if y != height:
+        raise ValueError(f"the bands hold {y} rows of a raster {height} rows high")
+    for level in levels:
+        level.flush()
+    return [(level.height, level.paths) for level in levels]
+
+
+def _first_level(band: Path, kind: Kind) -> tuple[Any, int]:
+    """A band's first overview level, read a block of columns at a time, and the band's rows: for a mosaic the
+    2x2 sums of its covered pixels (h', w', 3) uint16 and their count (h', w') uint16, an odd last row or column
+    summed alone; for a frame index its even rows and columns."""
+    with rasterio.open(band) as src:
+        width, rows = src.width, src.height
+
+    def chunk(x: int) -> Any:  # a thread's own handle: a GDAL dataset is not shared between threads
+        window = Window(x, 0, min(_CHUNK_PX, width - x), rows)
+        with rasterio.open(band) as src:
+            if kind == "index":
+                return src.read(1, window=window)[::2, ::2]
+            rgb = np.moveaxis(src.read(window=window), 0, 2)
+            covered = src.read_masks(1, window=window) > 0
+        return _pool(np.where(covered[..., None], rgb, np.uint8(0)), covered.astype(np.uint8), np.uint16)
+
+    blocks = ordered_map(chunk, range(0, width, _CHUNK_PX), usable_cores(), noop_progress, "block")
+    if kind == "index":
+        return np.concatenate(blocks, axis=1), rows
+    return (np.concatenate([b[0] for b in blocks], axis=1), np.concatenate([b[1] for b in blocks], axis=1)), rows
+
+
+def _pool(sums: np.ndarray, counts: np.ndarray, dtype: type) -> tuple[np.ndarray, np.ndarray]:
+    """2x2 sums of (h, w, 3) ``sums`` and (h, w) ``counts`` in ``dtype`` (an odd last row or column alone)."""
+    h, w = counts.shape
+    if h % 2 or w % 2:
+        sums = np.pad(sums, ((0, h % 2), (0, w % 2), (0, 0)))
+        counts = np.pad(counts, ((0, h % 2), (0, w % 2)))
+    s = sums[0::2].astype(dtype) + sums[1::2]
+    c = counts[0::2].astype(dtype) + counts[1::2]
+    return s[:, 0::2] + s[:, 1::2], c[:, 0::2] + c[:, 1::2]
+
+
+class _LevelOut:
+    """One overview level, written a tile row (512 rows) at a time, each tile row a GeoTIFF of its own: a
+    partial tile row written early would be compressed and written twice, and the COG copies a level's files
+    one by one, deleting each (so the largest level never exists twice)."""
+
+    def __init__(self, stem: Path, width: int, height: int, compression: str, kind: Kind) -> None:
+        self.stem, self.width, self.height, self.kind = stem, width, height, kind
+        self.profile = {**band_profile(compression, kind), "width": width}
+        self.y = 0  # rows written
+        self.values: list[np.ndarray] = []
+        self.covered: list[np.ndarray] = []
+        self.paths: list[Path] = []
+
+    def add(self, values: np.ndarray, covered: np.ndarray | None) -> None:
+        self.values.append(values)
+        if covered is not None:
+            self.covered.append(covered)
+        while sum(v.shape[0] for v in self.values) >= COG_BLOCK_PX:
+            self._write(COG_BLOCK_PX)
+
+    def flush(self) -> None:
+        """Write the rows left (the level's last, partial tile row)."""
+        rows = sum(v.shape[0] for v in self.values)
+        if rows:
+            self._write(rows)
+        if self.y != self.height:
+            raise ValueError(f"an overview level {self.height} rows high was given {self.y}")
+
+    def _write(self, rows: int) -> None:
+        values = np.concatenate(self.values)
+        self.values = [values[rows:]]
+        path = self.stem.with_name(f"{self.stem.name}.{self.y:07d}.tif")
+        window = Window(0, 0, self.width, rows)
+        with (
+            rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_NUM_THREADS="ALL_CPUS"),
+            rasterio.open(path, "w", height=rows, **self.profile) as dst,
+        ):
+            if self.kind == "index":
+                dst.write(values[:rows], 1, window=window)
+            else:
+                covered = np.concatenate(self.covered)
+                self.covered = [covered[rows:]]
+                dst.write(np.ascontiguousarray(np.moveaxis(values[:rows], 2, 0)), window=window)
+                dst.write_mask(covered[:rows].astype(np.uint8) * np.uint8(255), window=window)
+        self.paths.append(path)
+        self.y += rows
+
+
+class _AverageChain:
+    """The masked average of every level from the first level's sums and counts (a level's sums are its
+    parent's summed, never an average of averages): GDAL's "average" over a mask from the full resolution,
+    exactly where each level halves an even size (across an odd one GDAL's windows are W / ceil(W / 2) px,
+    weighing the pixels they cut, and drift up to a pixel from the 2x2 blocks)."""
+
+    def __init__(self, levels: list[_LevelOut]) -> None:
+        self.levels = levels
+        self.carry: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(levels)
+        self.seen = [0] * len(levels)  # rows of its parent each level has received
+
+    def add(self, first: tuple[np.ndarray, np.ndarray], y: int) -> None:
+        sums, counts = first
+        self.levels[0].add(_average(sums, counts), counts > 0)
+        for k in range(1, len(self.levels)):
+            self.seen[k] += counts.shape[0]
+            carried = self.carry[k]
+            if carried is not None:  # a parent row whose pair is in this block
+                sums, counts = np.concatenate([carried[0], sums]), np.concatenate([carried[1], counts])
+                self.carry[k] = None
+            if counts.shape[0] % 2 and self.seen[k] < self.levels[k - 1].height:
+                self.carry[k] = (sums[-1:], counts[-1:])
+                sums, counts = sums[:-1], counts[:-1]
+            if not counts.shape[0]:
+                return
+            sums, counts = _pool(sums, counts, np.uint64)
+            self.levels[k].add(_average(sums, counts), counts > 0)
+
+
+def _average(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8: sums / counts rounded half up (as GDAL rounds), 0 where nothing is covered. Divided in
+    floating point (4x integer division's speed), exactly: a quotient's distance from the next integer, at
+    least 1 / count, is far above the rounding error (float32 for the first level's counts of 4 at most)."""
+    c = np.maximum(counts, 1)
+    quotient = (sums + (c // 2)[..., None]).astype(np.float32 if counts.dtype == np.uint16 else np.float64)
+    np.divide(quotient, c[..., None], out=quotient)
+    return quotient.astype(np.uint8)  # truncated: the floor of a positive number
+
+
+class _NearestChain:
+    """Every level's top-left pixel of each 2x2, as GDAL's "nearest" picks it: the full resolution's pixel at
+    (factor * i, factor * j)."""
+
+    def __init__(self, levels: list[_LevelOut]) -> None:
+        self.levels = levels
+
+    def add(self, first: np.ndarray, y: int) -> None:
+        values, row = first, y // 2  # the band's first row is even (bands are 512-row multiples)
+        for k, level in enumerate(self.levels):
+            if k:
+                values = values[row % 2 :: 2, ::2]
+                row = -(-row // 2)
+            if values.shape[0]:
+                level.add(values, None)
+
+
+# -- the TIFF structure --------------------------------------------------------------------------------------------
+
+_TYPE_BYTES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 13: 4, 16: 8, 17: 8, 18: 8}
+_UNSIGNED = {1: "<u1", 3: "<u2", 4: "<u4", 16: "<u8"}
+_TILE_OFFSETS, _TILE_BYTE_COUNTS, _SUBFILE_TYPE = 324, 325, 254
+# where the raster lies and what it is: the full resolution's IFD only, as GDAL's COG driver writes them
+_PLACEMENT = {270, 305, 306, 33550, 33922, 34264, 34735, 34736, 34737, 42112}
+
+Tags = dict[int, tuple[int, int, bytes]]  # tag -> (TIFF type, count, the values' little-endian bytes)
+
+
+@dataclass
+class _Ifd:
+    tags: Tags
+
+    def array(self, tag: int) -> np.ndarray:
+        typ, count, raw = self.tags[tag]
+        if typ not in _UNSIGNED:
+            raise ValueError(f"TIFF tag {tag} is of type {typ}, not an unsigned integer")
+        return np.frombuffer(raw, _UNSIGNED[typ], count).astype(np.uint64)
+
+    def number(self, tag: int) -> int | None:
+        return int(self.array(tag)[0]) if tag in self.tags else None
+
+
+def _read_ifds(path: Path) -> list[_Ifd]:
+    """Every IFD of the little-endian TIFF or BigTIFF at ``path`` (what GDAL writes), in file order."""
+    ifds: list[_Ifd] = []
+    with open(path, "rb") as f:
+        head = f.read(16)
+        if head[:2] != b"II" or len(head) < 8:
+            raise ValueError(f"{path.name} is not a little-endian TIFF")
+        big = struct.unpack_from("<H", head, 2)[0] == 43
+        offset = struct.unpack_from("<Q", head, 8)[0] if big else struct.unpack_from("<I", head, 4)[0]
+        entry, inline = (20, 8) if big else (12, 4)
+        while offset and len(ifds) < 64:
+            f.seek(offset)
+            (n,) = struct.unpack("<Q", f.read(8)) if big else struct.unpack("<H", f.read(2))
+            block = f.read(n * entry + inline)
+            tags: Tags = {}
+            for k in range(n):
+                tag, typ = struct.unpack_from("<HH", block, k * entry)
+                count = struct.unpack_from("<Q" if big else "<I", block, k * entry + 4)[0]
+                field = block[k * entry + entry - inline : (k + 1) * entry]
+                size = _TYPE_BYTES[typ] * count
+                if size <= inline:
+                    raw = field[:size]
+                else:
+                    f.seek(struct.unpack("<Q" if big else "<I", field)[0])
+                    raw = f.read(size)
+                tags[tag] = (typ, count, raw)
+            ifds.append(_Ifd(tags))
+            offset = struct.unpack_from("<Q" if big else "<I", block, n * entry)[0]
+    return ifds
+
+
+@dataclass
+class _Source:
+    """A file holding some of a level's tiles, in the level's row-major order: their offsets and byte counts, and
+    those of their mask."""
+
+    path: Path
+    image: tuple[np.ndarray, np.ndarray]
+    mask: tuple[np.ndarray, np.ndarray] | None
+
+
+@dataclass
+class _Level:
+    """One resolution of the COG: its image IFD's tags, its mask IFD's (None: no mask), where its tiles are."""
+
+    image: Tags
+    mask: Tags | None
+    sources: list[_Source]
+
+
+def _tiles(ifd: _Ifd) -> tuple[np.ndarray, np.ndarray]:
+    return ifd.array(_TILE_OFFSETS), ifd.array(_TILE_BYTE_COUNTS)
+
+
+def _without(tags: Tags, drop: set[int]) -> Tags:
+    return {tag: value for tag, value in tags.items() if tag not in drop}
+
+
+def _subfile(tags: Tags, value: int) -> Tags:
+    return {**tags, _SUBFILE_TYPE: (4, 1, struct.pack("<I", value))}
+
+
+_SAME_IN_EVERY_BAND = (256, 258, 259, 262, 277, 284, 317, 322, 323, 339, 347, 530, 532, 42113)
+
+
+def _level(files: Sequence[Path], height: int, kind: Kind, image: Tags | None) -> _Level:
+    """A level of the COG from ``files`` of its rows (512-row multiples but the last), ``height`` rows in all:
+    the tiles of the files in order under the image IFD ``image`` (the full resolution's, which GDAL wrote for
+    the whole raster, placed and tagged) or the first file's, and the first file's mask IFD, both made the
+    level's height."""
+    sources: list[_Source] = []
+    mask: Tags | None = None
+    rows = _row_count(height)
+    for path in files:
+        ifds = _read_ifds(path)
+        if image is None:
+            image = {**ifds[0].tags, 257: rows}
+        for tag in _SAME_IN_EVERY_BAND:
+            if image.get(tag) != ifds[0].tags.get(tag):
+                raise ValueError(f"{path.name} was not written as this COG's tiles (TIFF tag {tag} differs)")
+        file_mask = None
+        if kind == "rgb":
+            if len(ifds) < 2 or ifds[1].number(_SUBFILE_TYPE) != 4:
+                raise ValueError(f"{path.name} has no mask")
+            file_mask = _tiles(ifds[1])
+            if mask is None:
+                mask = {**_without(ifds[1].tags, {_TILE_OFFSETS, _TILE_BYTE_COUNTS}), 257: rows}
+        sources.append(_Source(path, _tiles(ifds[0]), file_mask))
+    if image is None:
+        raise ValueError("a level needs at least one file")
+    tiles = sum(len(s.image[0]) for s in sources)
+    across = -(-int(_Ifd(image).array(256)[0]) // COG_BLOCK_PX)
+    if tiles != across * -(-height // COG_BLOCK_PX):
+        raise ValueError(f"the files hold {tiles} tiles, not the {across} x {-(-height // COG_BLOCK_PX)} expected")
+    return _Level(_without(image, {_TILE_OFFSETS, _TILE_BYTE_COUNTS}), mask, sources)
+
+
+def _row_count(height: int) -> tuple[int, int, bytes]:
+    """The ImageLength entry of ``height`` rows (SHORT below 65536, as libtiff writes it)."""
+    return (3, 1, struct.pack("<H", height)) if height < 65536 else (4, 1, struct.pack("<I", height))
+
+
+def _ghost(masked: bool) -> bytes:
+    """GDAL's COG ghost header: how the file is laid out, which GDAL's reader trusts to read a tile in one
+    request (its byte count ahead of it) and to check it was not edited (its last 4 bytes after it)."""
+    text = (
+        "LAYOUT=IFDS_BEFORE_DATA\nBLOCK_ORDER=ROW_MAJOR\nBLOCK_LEADER=SIZE_AS_UINT4\n"
+        "BLOCK_TRAILER=LAST_4_BYTES_REPEATED\nKNOWN_INCOMPATIBLE_EDITION=NO\n "
+    )
+    if masked:
+        text += "MASK_INTERLEAVED_WITH_IMAGERY=YES\n"
+    return f"GDAL_STRUCTURAL_METADATA_SIZE={len(text):06d} bytes\n{text}".encode("ascii")
+
+
+def _header(ifds: list[Tags], big: bool, ghost: bytes) -> bytes:
+    """The TIFF header, ``ghost``, every IFD chained in order with its values after it, and then the tile offset
+    and byte count arrays that do not fit in their IFD entries (as GDAL places them)."""
+    entry, inline = (20, 8) if big else (12, 4)
+    start = (16 if big else 8) + len(ghost)
+    start += start % 2
+    later = (_TILE_OFFSETS, _TILE_BYTE_COUNTS)
+    positions, pos = [], start
+    for tags in ifds:
+        positions.append(pos)
+        pos += (8 if big else 2) + len(tags) * entry + (8 if big else 4)
+        pos += sum(_even(len(raw)) for tag, (_, _, raw) in tags.items() if len(raw) > inline and tag not in later)
+    arrays = pos
+    out = bytearray(b"II" + (struct.pack("<HHHQ", 43, 8, 0, start) if big else struct.pack("<HI", 42, start)))
+    out += ghost
+    out += bytes(start - len(out))
+    for n, tags in enumerate(ifds):
+        values = bytearray()
+        value_pos = positions[n] + (8 if big else 2) + len(tags) * entry + (8 if big else 4)
+        body = bytearray(struct.pack("<Q", len(tags)) if big else struct.pack("<H", len(tags)))
+        for tag in sorted(tags):
+            typ, count, raw = tags[tag]
+            if not big and typ in (16, 17, 18):
+                raise ValueError(f"TIFF tag {tag} needs a BigTIFF")
+            body += struct.pack("<HHQ" if big else "<HHI", tag, typ, count)
+            if len(raw) <= inline:
+                field = raw.ljust(inline, b"\0")
+            elif tag in later:
+                field = struct.pack("<Q" if big else "<I", arrays)
+                arrays += _even(len(raw))
+            else:
+                field = struct.pack("<Q" if big else "<I", value_pos + len(values))
+                values += raw.ljust(_even(len(raw)), b"\0")
+            body += field
+        following = positions[n + 1] if n + 1 < len(ifds) else 0
+        body += struct.pack("<Q" if big else "<I", following)
+        out += body + values
+    for tags in ifds:
+        for tag in later:
+            raw = tags[tag][2]
+            if len(raw) > inline:
+                out += raw.ljust(_even(len(raw)), b"\0")
+    return bytes(out)
+
+
+def _even(n: int) -> int:
+    return n + n % 2
+
+
+def _assemble(path: Path, levels: list[_Level], bigtiff: bool | None, progress: ProgressFn) -> None:
+    """Write the COG of ``levels`` (full resolution first) at ``path``: header and IFDs, then each level's tiles,
+    smallest first, every tile with its byte count before it and its last 4 bytes after it and followed by its
+    mask's tile; each source file is deleted once its tiles are copied."""
+    masked = any(level.mask is not None for level in levels)
+    ghost = _ghost(masked)
+    # IFD order as GDAL's COG driver writes it: full resolution, its mask, the overviews, their masks
+    order = [(k, "image") for k in range(len(levels))]
+    order[1:1] = [(0, "mask")] if levels[0].mask is not None else []
+    order += [(k, "mask") for k in range(1, len(levels)) if levels[k].mask is not None]
+    counts = {
+        (k, part): np.concatenate([(s.image if part == "image" else s.mask)[1] for s in level.sources])  # type: ignore[index]
+        for k, level in enumerate(levels)
+        for part in ("image", "mask")
+        if part == "image" or level.mask is not None
+    }
+    data_bytes = sum(int(c.sum() + 8 * np.count_nonzero(c)) for c in counts.values())
+
+    def ifds(big: bool, offsets: Mapping[tuple[int, str], np.ndarray] | None) -> list[Tags]:
+        out = []
+        for key in order:
+            k, part = key
+            tags = dict(levels[k].image if part == "image" else levels[k].mask or {})
+            n = len(counts[key])
+            offs = offsets[key] if offsets is not None else np.zeros(n, np.uint64)
+            tags[_TILE_OFFSETS] = (16, n, offs.astype("<u8").tobytes()) if big else (4, n, offs.astype("<u4").tobytes())
+            tags[_TILE_BYTE_COUNTS] = (4, n, counts[key].astype("<u4").tobytes())
+            out.append(tags)
+        return out
+
+    big = bigtiff if bigtiff is not None else len(_header(ifds(False, None), False, ghost)) + data_bytes >= 2**32
+    start = len(_header(ifds(big, None), big, ghost))
+    offsets: dict[tuple[int, str], np.ndarray] = {}
+    cursor = start
+    for k in reversed(range(len(levels))):  # smallest overview first, tile by tile, each tile then its mask
+        image = counts[(k, "image")]
+        mask = counts.get((k, "mask"))
+        sizes = np.stack([image, mask if mask is not None else np.zeros_like(image)], axis=1)
+        spans = np.where(sizes > 0, sizes + 8, 0).ravel()
+        starts = cursor + np.concatenate([[0], np.cumsum(spans)[:-1]]).astype(np.uint64)
+        at = np.where(sizes.ravel() > 0, starts + 4, 0).reshape(-1, 2)
+        offsets[(k, "image")] = at[:, 0]
+        if mask is not None:
+            offsets[(k, "mask")] = at[:, 1]
+        cursor += int(spans.sum())
+    header = _header(ifds(big, offsets), big, ghost)
+    if len(header) != start:
+        raise AssertionError("the COG header changed size once its offsets were known")
+    copied = 0
+    with open(path, "wb", buffering=16 << 20) as out:
+        out.write(header)
+        for k in reversed(range(len(levels))):
+            for source in levels[k].sources:
+                copied += _copy_tiles(out, source)
+                source.path.unlink()
+                progress(copied / max(data_bytes, 1), f"COG: {copied / 2**20:.0f}/{data_bytes / 2**20:.0f} MiB")
+        if out.tell() != cursor:
+            raise AssertionError(f"the COG is {out.tell()} bytes where its layout said {cursor}")
+
+
+def _copy_tiles(out: BinaryIO, source: _Source) -> int:
+    """Append ``source``'s tiles (each followed by its mask's) with their leaders and trailers; bytes written."""
+    written = 0
+    pairs = [source.image] if source.mask is None else [source.image, source.mask]
+    with open(source.path, "rb") as f:
+        for t in range(len(source.image[0])):
+            for offsets, counts in pairs:
+                count = int(counts[t])
+                if not count:
+                    continue
+                f.seek(int(offsets[t]))
+                data = f.read(count)
+                if len(data) != count:
+                    raise ValueError(f"{source.path.name} ends inside a tile")
+                out.write(struct.pack("<I", count) + data + data[-4:].rjust(4, b"\0"))
+                written += count + 8
+    return written
+
+
+def _write_header(
+    path: Path,
+    width: int,
+    height: int,
+    crs: int | str | None,
+    transform: list[float] | None,
+    compression: str,
+    kind: Kind,
+    tags: Mapping[str, str],
+) -> None:
+    """A GeoTIFF with no tiles (sparse) that GDAL writes for the whole raster: the full resolution's IFD, placed,
+    tagged and coded exactly as the COG's."""
+    profile = {**band_profile(compression, kind), "width": width, "height": height, "sparse_ok": True}
+    if transform is not None:
+        profile["transform"] = Affine(*transform)
+        if crs is not None:
+            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.update_tags(**{**provenance_tags(), **tags})
