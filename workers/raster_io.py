@@ -118,6 +118,9 @@ def _translate(src: Path, dst: Path, compression: str, tags: Mapping[str, str] |
             metadata = {**scratch.tags(), **(tags or {})}
         levels = _pyramid_paths(levels_dir, width, height)
         with (
+            # each block is read once and written once: GDAL's cache (5 % of RAM unless set) would keep the whole
+            # scratch (Brighton: +100 MiB, the job's peak)
+            rasterio.Env(GDAL_CACHEMAX=PYRAMID_CACHE_MIB),
             OverviewPyramid(levels, width, height, index=index) as pyramid,
             (open_index_reader if index else open_band_reader)(src) as read,
         ):
@@ -380,6 +383,7 @@ def open_window_reader(path: Path) -> Iterator[WindowRead]:
 
 # -- overviews averaged under the mask, level by level, and the VRT that hands them to GDAL's COG driver -------
 
+PYRAMID_CACHE_MIB = 32  # GDAL's block cache while the overview pyramid reads the scratch and writes its levels
 OVERVIEW_CHUNK_PX = 8192  # columns averaged at once (even): temporaries of 8192 x a band's rows, never its width
 
 
@@ -420,7 +424,9 @@ class OverviewPyramid:
     as its rows are known into an uncompressed tiled GeoTIFF of ``paths`` (level 2, 4, 8, ...): RGB + mask
     averaged under the mask (:func:`masked_half`), or with ``index`` a frame index (uint16, nodata 0) by nearest
     neighbour (a frame number is not averaged). Memory: one band and a row carried per level, whatever the
-    mosaic's size."""
+    mosaic's size. Each level is averaged from the one above: where the mask cuts a cell, from level 4 on, a mean
+    of means (``workers.cog_writer``, a gigapixel mosaic's, carries sums and counts down instead: the mean of the
+    covered pixels; the two differ only along the coverage's edge, by a grey level or two)."""
 
     def __init__(self, paths: list[Path], width: int, height: int, *, index: bool = False) -> None:
         self.sizes = [(-(-width // 2 ** (n + 1)), -(-height // 2 ** (n + 1))) for n in range(len(paths))]

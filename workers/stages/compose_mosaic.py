@@ -21,6 +21,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import rasterio
 from rasterio.windows import Window
 
 from workers.algorithms.mosaic import (
@@ -43,6 +44,7 @@ from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import (
     COG_BLOCK_PX,
+    PYRAMID_CACHE_MIB,
     open_band_reader,
     open_block_writer,
     open_index_reader,
@@ -175,6 +177,7 @@ def finish(
     tmp, tmp_index = ws.mosaic_scratch_path(), ws.frame_index_scratch_path()
     transform = geo.transform if geo.georeferenced else None
     with (
+        rasterio.Env(GDAL_CACHEMAX=PYRAMID_CACHE_MIB),  # blocks written once: not held in GDAL's cache (5 % of RAM)
         open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write,
         open_index_writer(tmp_index, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write_index,
     ):

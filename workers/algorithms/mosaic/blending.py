@@ -74,18 +74,28 @@ def overlap_statistics(images: list[np.ndarray], masks: list[np.ndarray]) -> tup
     if n == 0:
         return np.zeros((0, 0, c)), np.zeros((0, 0), np.int64)
     # every pair at once, as products of (n, pixels) matrices: sums[i, j] = the sum of frame i where both are
-    # (a pair at a time by boolean indexing took 0.06 s of budapest1-6's 0.13 s compose plan)
-    # float32 BLAS: means to ~1e-6, counts exact (a grid of under 2^24 px: OVERVIEW_PX is 768)
-    covered = np.stack([m.ravel() for m in masks]).astype(np.float32)
-    overlap = covered @ covered.T
+    # (a pair at a time by boolean indexing took 0.06 s of budapest1-6's 0.13 s compose plan), OVERLAP_CHUNK_PX
+    # pixels at a time (the float copies of every frame's whole render were the compose plan's peak memory);
+    # float32 BLAS: means to ~1e-6, counts exact (under 2^24 px per chunk)
+    flat_masks = [m.ravel() for m in masks]
+    flat_images = [im.reshape(-1, c) for im in images]
+    overlap = np.zeros((n, n))
+    sums = np.zeros((c, n, n))
+    for start in range(0, flat_masks[0].size, OVERLAP_CHUNK_PX):
+        part = slice(start, start + OVERLAP_CHUNK_PX)
+        covered = np.stack([m[part] for m in flat_masks]).astype(np.float32)
+        overlap += covered @ covered.T
+        for ch in range(c):
+            values = np.stack([im[part, ch] for im in flat_images]).astype(np.float32) * covered
+            sums[ch] += values @ covered.T
     counts = np.rint(overlap).astype(np.int64)
     np.fill_diagonal(counts, 0)
-    means = np.zeros((n, n, c))
-    for ch in range(c):
-        values = np.stack([im[..., ch].ravel() for im in images]).astype(np.float32) * covered
-        means[:, :, ch] = (values @ covered.T) / np.maximum(overlap, 1.0)
+    means = np.moveaxis(sums / np.maximum(overlap, 1.0), 0, 2)
     means[counts == 0] = 0.0
     return means, counts
+
+
+OVERLAP_CHUNK_PX = 65536  # overlap_statistics: pixels of every frame's render multiplied at once
 
 
 def gain_compensation(means: np.ndarray, counts: np.ndarray, sigma_n: float = 10.0, sigma_g: float = 0.1) -> np.ndarray:
