@@ -23,12 +23,10 @@ from typing import Any, BinaryIO, Literal
 
 import numpy as np
 import rasterio
-from rasterio.crs import CRS
-from rasterio.transform import Affine
 from rasterio.windows import Window
 
 from workers.parallel import ordered_map, usable_cores
-from workers.raster_io import COG_BLOCK_PX, BlockWriter, IndexWriter, overview_levels, provenance_tags
+from workers.raster_io import COG_BLOCK_PX, BlockWriter, IndexWriter, overview_levels, placement, provenance_tags
 from workers.workspace import ProgressFn, atomic_path, noop_progress
 
 Kind = Literal["rgb", "index"]  # a 3-band uint8 mosaic with its mask (average), or a uint16 frame index (nearest)
@@ -623,9 +621,6 @@ def _write_header(
     """A GeoTIFF with no tiles (sparse) that GDAL writes for the whole raster: the full resolution's IFD, placed,
     tagged and coded exactly as the COG's."""
     profile = {**band_profile(compression, kind), "width": width, "height": height, "sparse_ok": True}
-    if transform is not None:
-        profile["transform"] = Affine(*transform)
-        if crs is not None:
-            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
+    profile.update(placement(crs, transform))
     with rasterio.open(path, "w", **profile) as dst:
         dst.update_tags(**{**provenance_tags(), **tags})

@@ -82,11 +82,17 @@ def _tiled_profile(
         profile["compress"] = compress
     if compress == "zstd":
         profile["zstd_level"] = 1  # scratch rasters: the fastest level
-    if transform is not None:
-        profile["transform"] = Affine(*transform)
-        if crs is not None:
-            profile["crs"] = CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)
-    return profile
+    return {**profile, **placement(crs, transform)}
+
+
+def placement(crs: int | str | None, transform: list[float] | None) -> dict[str, Any]:
+    """The rasterio profile items that place a raster: ``transform`` (rasterio's a, b, c, d, e, f) in ``crs`` (an
+    EPSG code or WKT; none without a transform); empty for a raster placed nowhere."""
+    if transform is None:
+        return {}
+    if crs is None:
+        return {"transform": Affine(*transform)}
+    return {"transform": Affine(*transform), "crs": CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)}
 
 
 def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
