@@ -14,8 +14,7 @@ on the band's width and the frames' size, never on the size of the mosaic.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -45,9 +44,7 @@ from workers.pipeline import PipelineError
 from workers.raster_io import (
     COG_BLOCK_PX,
     PYRAMID_CACHE_MIB,
-    open_band_reader,
     open_block_writer,
-    open_index_reader,
     open_index_writer,
     open_window_reader,
     translate_index_to_cog,
@@ -178,18 +175,15 @@ def finish(
     transform = geo.transform if geo.georeferenced else None
     with (
         rasterio.Env(GDAL_CACHEMAX=PYRAMID_CACHE_MIB),  # blocks written once: not held in GDAL's cache (5 % of RAM)
-        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write,
-        open_index_writer(tmp_index, geo.width, geo.height, geo.epsg, transform, compress=_codec(geo)) as write_index,
+        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=None) as write,
+        open_index_writer(tmp_index, geo.width, geo.height, geo.epsg, transform, compress=None) as write_index,
     ):
         for n, key in enumerate(records):
             y, height = int(key), int(records[key]["rows"])
-            with _band_reader(ws, y, raw) as (read, index):
-                # a raw band in one go (its planes are what GDAL writes); a GeoTIFF one window at a time
-                step = geo.width if raw else cfg.block_px
-                for x in range(0, geo.width, step):
-                    width = min(step, geo.width - x)
-                    write(Window(x, y, width, height), *read(Window(x, 0, width, height)))
-                    write_index(Window(x, y, width, height), index(Window(x, 0, width, height)))
+            # a band in one go: its planes are what GDAL writes
+            pixels, index = _raw_band(ws, y)
+            write(Window(0, y, geo.width, height), np.moveaxis(pixels[:3], 0, 2), pixels[3] > 0)
+            write_index(Window(0, y, geo.width, height), index)
             # a band copied is a band deleted: the disk holds the bands or the scratch mosaic, not both (a finish
             # stopped before its COG composes the deleted bands again, above)
             ws.compose_band_path(y, raw).unlink()
@@ -238,11 +232,11 @@ def _finished(
 
 
 def _raw_bands(geo: Any) -> bool:
-    """Bands kept as ``.npy`` planes (no GDAL) whenever the scratch GeoTIFFs are uncompressed (:func:`_codec`):
-    on the Brighton strip the bands' tiled GeoTIFF writes and reads cost 0.35 s of CPU, their ``.npy`` 0.15 s, for
-    the same COGs to the byte's value. Past SCRATCH_RAW_MAX_PX they are GeoTIFFs of the COGs' own tiles
-    (:func:`_assemble_cogs`)."""
-    return _codec(geo) is None
+    """Bands kept as ``.npy`` planes (no GDAL) up to SCRATCH_RAW_MAX_PX, copied by the finish into uncompressed
+    scratch GeoTIFFs: on the Brighton strip the bands' tiled GeoTIFF writes and reads cost 0.35 s of CPU, their
+    ``.npy`` 0.15 s, for the same COGs to the byte's value. Past it they are GeoTIFFs of the COGs' own tiles
+    (:func:`_assemble_cogs`): raw, a gigapixel mosaic's bands and scratch would take 4 B/px."""
+    return bool(geo.width * geo.height <= SCRATCH_RAW_MAX_PX)
 
 
 def _band_rows(cfg: MosaicConfig, geo: Any) -> int:
@@ -325,24 +319,12 @@ def _save_raw_band(
         np.save(tmp, index)
 
 
-@contextmanager
-def _band_reader(
-    ws: JobWorkspace, y: int, raw: bool
-) -> Iterator[tuple[Callable[[Window], tuple[np.ndarray, np.ndarray]], Callable[[Window], np.ndarray]]]:
-    """``(read(window) -> (rgb, mask), index(window) -> (h, w) uint16)`` of the band of rows from ``y``, in
-    band rows, whichever way it was written. A raw band read whole is its planes, copied by GDAL as they are."""
-    if not raw:
-        with open_band_reader(ws.compose_band_path(y)) as band, open_index_reader(ws.index_band_path(y)) as index:
-            yield band, index
-        return
-    pixels = np.load(ws.compose_band_path(y, raw=True), mmap_mode="r")
-    frames = np.load(ws.index_band_path(y, raw=True), mmap_mode="r")
-
-    def read(w: Window) -> tuple[np.ndarray, np.ndarray]:
-        part = pixels[:, w.row_off : w.row_off + w.height, w.col_off : w.col_off + w.width]
-        return np.moveaxis(part[:3], 0, 2), part[3] > 0
-
-    yield read, lambda w: frames[w.row_off : w.row_off + w.height, w.col_off : w.col_off + w.width]
+def _raw_band(ws: JobWorkspace, y: int) -> tuple[np.ndarray, np.ndarray]:
+    """The band of rows from ``y`` as :func:`_save_raw_band` wrote it, memory-mapped: (4, h, w) uint8 planes R, G,
+    B and coverage, and the (h, w) uint16 frame index."""
+    return np.load(ws.compose_band_path(y, raw=True), mmap_mode="r"), np.load(
+        ws.index_band_path(y, raw=True), mmap_mode="r"
+    )
 
 
 def _index_values(index: np.ndarray) -> np.ndarray:
@@ -369,14 +351,6 @@ def _working_geometry(ws: JobWorkspace) -> tuple[dict[int, tuple[int, int]], dic
     homs = ws.load_alignment().homographies
     to_frame = {k: np.linalg.inv(H) @ geo.output_to_plane for k, H in homs.items()}
     return {k: (frames[k].width, frames[k].height) for k in to_frame}, to_frame
-
-
-def _codec(geo: Any) -> str | None:
-    """Scratch rasters uncompressed (fastest), but ZSTD (level 1) past SCRATCH_RAW_MAX_PX, where they would take
-    4 B/px. Deflate (level 6, GDAL's default) was there before: on a 2.5 Gpx strip mosaic its bands and scratch
-    cost about a third of composing; on that mosaic's tiles ZSTD 1 wrote 8x and read 2x as fast for 6 % more
-    bytes."""
-    return None if geo.width * geo.height <= SCRATCH_RAW_MAX_PX else "zstd"
 
 
 def _working_to_photo(frame: Frame) -> np.ndarray:
