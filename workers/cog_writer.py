@@ -26,7 +26,15 @@ import rasterio
 from rasterio.windows import Window
 
 from workers.parallel import ordered_map, usable_cores
-from workers.raster_io import COG_BLOCK_PX, BlockWriter, IndexWriter, overview_levels, placement, provenance_tags
+from workers.raster_io import (
+    COG_BLOCK_PX,
+    BlockWriter,
+    IndexWriter,
+    cog_codec,
+    overview_levels,
+    placement,
+    provenance_tags,
+)
 from workers.workspace import ProgressFn, atomic_path, noop_progress
 
 Kind = Literal["rgb", "index"]  # a 3-band uint8 mosaic with its mask (average), or a uint16 frame index (nearest)
@@ -47,20 +55,20 @@ def band_profile(compression: str, kind: Kind) -> dict[str, Any]:
         # with SPARSE_OK: its offset and byte count stay 0 through the COG, and readers see zeros, masked
         "sparse_ok": True,
     }
+    codec = cog_codec(compression, index=kind == "index")
+    profile["compress"] = codec.name
     if kind == "index":
-        codec = "deflate" if compression == "jpeg" else compression
-        profile.update(count=1, dtype="uint16", nodata=0, compress=codec)
+        profile.update(count=1, dtype="uint16", nodata=0)
     else:
-        codec = compression
-        profile.update(count=3, dtype="uint8", interleave="pixel", compress=codec)
-        if codec == "jpeg":
-            profile.update(photometric="YCBCR", jpeg_quality=90)
-        else:
-            profile.update(photometric="RGB", predictor=2)
-    if codec == "deflate":
-        profile["zlevel"] = 1
-    elif codec == "zstd":
-        profile["zstd_level"] = 1
+        profile.update(
+            count=3, dtype="uint8", interleave="pixel", photometric="YCBCR" if codec.name == "jpeg" else "RGB"
+        )
+    if codec.predictor is not None:
+        profile["predictor"] = codec.predictor
+    if codec.level is not None:
+        profile["zstd_level" if codec.name == "zstd" else "zlevel"] = codec.level
+    if codec.quality is not None:
+        profile["jpeg_quality"] = codec.quality
     return profile
 
 
@@ -100,9 +108,9 @@ def band_fits(path: Path, width: int, rows: int, compression: str, kind: Kind) -
     except (OSError, ValueError, struct.error):
         return False
     image = ifds[0]
-    codec = band_profile(compression, kind)["compress"]
+    codec = cog_codec(compression, index=kind == "index")
     expected = {
-        259: {"jpeg": 7, "deflate": 8, "zstd": 50000, "lzw": 5}[codec],
+        259: {"jpeg": 7, "deflate": 8, "zstd": 50000, "lzw": 5}[codec.name],
         277: 3 if kind == "rgb" else 1,
         284: 1,
         322: COG_BLOCK_PX,
@@ -110,8 +118,8 @@ def band_fits(path: Path, width: int, rows: int, compression: str, kind: Kind) -
         256: width,
         257: rows,
     }
-    if kind == "rgb" and codec != "jpeg":
-        expected[317] = 2  # horizontal differencing
+    if codec.predictor is not None:
+        expected[317] = codec.predictor  # horizontal differencing
     if any(image.number(tag) != value for tag, value in expected.items()):
         return False
     return kind == "index" or (len(ifds) > 1 and ifds[1].number(254) == 4)
@@ -620,7 +628,7 @@ def _write_header(
 ) -> None:
     """A GeoTIFF with no tiles (sparse) that GDAL writes for the whole raster: the full resolution's IFD, placed,
     tagged and coded exactly as the COG's."""
-    profile = {**band_profile(compression, kind), "width": width, "height": height, "sparse_ok": True}
+    profile = {**band_profile(compression, kind), "width": width, "height": height}
     profile.update(placement(crs, transform))
     with rasterio.open(path, "w", **profile) as dst:
         dst.update_tags(**{**provenance_tags(), **tags})

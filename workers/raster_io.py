@@ -6,6 +6,7 @@ from __future__ import annotations
 import shutil
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -95,6 +96,38 @@ def placement(crs: int | str | None, transform: list[float] | None) -> dict[str,
     return {"transform": Affine(*transform), "crs": CRS.from_epsg(crs) if isinstance(crs, int) else CRS.from_wkt(crs)}
 
 
+@dataclass(frozen=True)
+class CogCodec:
+    """How a COG's tiles are compressed: what :func:`copy_to_cog` asks GDAL's COG driver for, and what
+    ``workers.cog_writer`` writes a gigapixel mosaic's bands with (their tiles are copied into its COG as they
+    are, so both must agree)."""
+
+    name: str  # deflate, zstd, lzw or jpeg
+    predictor: int | None  # 2: horizontal differencing
+    level: int | None  # deflate's or ZSTD's
+    quality: int | None  # JPEG's
+
+
+def cog_codec(compression: str, *, index: bool = False) -> CogCodec:
+    """The codec of a mosaic's COG (``index``: of its frame index) asked to be ``compression``.
+
+    An index is never JPEG (lossy: deflate instead) and has no horizontal differencing: it is runs of one value,
+    which deflate packs as well without it (157 against 148 KiB on the Brighton strip, in 0.12 s instead of
+    0.17 s). A mosaic's deflate/LZW/ZSTD tiles are differenced (its COG 21.0 -> 15.7 MiB, in the same time; the
+    pixels read back are identical); JPEG is quality 90 (GDAL stores 3-band JPEG as YCbCr). Deflate and ZSTD at
+    their fastest level: measured on the Brighton strip's 14 MP mosaic (overviews + COG, one run): deflate level
+    6 (GDAL's default) 2.48 s 15.6 MiB, level 1 1.43 s 16.0 MiB; zstd 1 1.03 s 16.5 MiB, zstd 3 1.14 s 15.9 MiB;
+    lzw 1.65 s 17.1 MiB; jpeg 90 1.98 s 2.8 MiB (lossy); none 0.57 s 63.8 MiB. Deflate stays the default: every
+    TIFF reader knows it, not every one ZSTD."""
+    name = "deflate" if index and compression == "jpeg" else compression
+    return CogCodec(
+        name,
+        predictor=None if index or name == "jpeg" else 2,
+        level=1 if name in ("deflate", "zstd") else None,
+        quality=90 if name == "jpeg" else None,
+    )
+
+
 def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
     """Copy the scratch GeoTIFF ``src`` (as :func:`open_block_writer` writes it) into a COG at ``dst`` with
     overviews and its mask, atomically.
@@ -110,8 +143,7 @@ def translate_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, 
 def translate_index_to_cog(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None = None) -> None:
     """:func:`translate_to_cog` for a frame index (``src`` as :func:`open_index_writer` writes it; 0: none): nodata
     0, overviews by nearest neighbour (a frame number is not averaged), never JPEG (deflate instead)."""
-    codec = "deflate" if compression == "jpeg" else compression
-    _translate(src, dst, codec, {**provenance_tags(), **(tags or {})}, index=True)
+    _translate(src, dst, compression, {**provenance_tags(), **(tags or {})}, index=True)
 
 
 def _translate(src: Path, dst: Path, compression: str, tags: Mapping[str, str] | None, *, index: bool) -> None:
@@ -142,17 +174,11 @@ def _translate(src: Path, dst: Path, compression: str, tags: Mapping[str, str] |
 
 def copy_to_cog(src: Path, dst: Path, compression: str, *, index: bool = False) -> None:
     """GDAL's COG driver copies ``src`` (its overviews, if any, as they are) to ``dst``, atomically, compressing
-    on all cores. ``index``: a frame index (overviews by nearest neighbour when ``src`` has none, no horizontal
-    differencing: an index is runs of one value, which deflate packs as well without it, 157 against 148 KiB on
-    the Brighton strip, in 0.12 s instead of 0.17 s).
-
-    Measured on the Brighton strip's 14 MP mosaic (overviews + COG, one run): deflate level 6 (GDAL's default)
-    2.48 s 15.6 MiB, level 1 1.43 s 16.0 MiB; zstd 1 1.03 s 16.5 MiB, zstd 3 1.14 s 15.9 MiB; lzw 1.65 s 17.1 MiB;
-    jpeg 90 1.98 s 2.8 MiB (lossy); none 0.57 s 63.8 MiB. Deflate (level 1) stays the default: every TIFF reader
-    knows it, not every one ZSTD.
-    """
+    on all cores with :func:`cog_codec`'s codec (``index``: a frame index's, and overviews by nearest neighbour
+    when ``src`` has none)."""
+    codec = cog_codec(compression, index=index)
     options: dict[str, Any] = {
-        "compress": compression.upper(),
+        "compress": codec.name.upper(),
         "blocksize": COG_BLOCK_PX,
         "num_threads": "ALL_CPUS",
         "bigtiff": "IF_SAFER",  # past 4 GB (a gigapixel strip): BigTIFF
@@ -163,14 +189,12 @@ def copy_to_cog(src: Path, dst: Path, compression: str, *, index: bool = False) 
     }
     if index:
         options["overview_resampling"] = "NEAREST"
-    elif compression == "jpeg":
-        options["quality"] = 90  # the COG driver stores 3-band JPEG as YCbCr
-    else:
-        # horizontal differencing before deflate/LZW/ZSTD: the Brighton mosaic's COG 21.0 -> 15.7 MiB, in the
-        # same time; the pixels read back are identical
-        options["predictor"] = 2
-    if compression in ("deflate", "zstd"):
-        options["level"] = 1  # the fastest level (above)
+    if codec.predictor is not None:
+        options["predictor"] = codec.predictor
+    if codec.level is not None:
+        options["level"] = codec.level
+    if codec.quality is not None:
+        options["quality"] = codec.quality
     with (
         rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True, GDAL_CACHEMAX=256, GDAL_NUM_THREADS="ALL_CPUS"),
         atomic_path(dst) as tmp,
