@@ -158,7 +158,7 @@ def _translate(src: Path, dst: Path, compression: str, tags: Mapping[str, str] |
         with (
             # each block is read once and written once: GDAL's cache (5 % of RAM unless set) would keep the whole
             # scratch (Brighton: +100 MiB, the job's peak)
-            rasterio.Env(GDAL_CACHEMAX=PYRAMID_CACHE_MIB),
+            rasterio.Env(GDAL_CACHEMAX=STREAM_CACHE_MIB),
             OverviewPyramid(levels, width, height, index=index) as pyramid,
             (open_index_reader if index else open_band_reader)(src) as read,
         ):
@@ -413,7 +413,7 @@ def open_window_reader(path: Path) -> Iterator[WindowRead]:
 
 # -- overviews averaged under the mask, level by level, and the VRT that hands them to GDAL's COG driver -------
 
-PYRAMID_CACHE_MIB = 32  # GDAL's block cache while the overview pyramid reads the scratch and writes its levels
+STREAM_CACHE_MIB = 32  # GDAL's block cache where each block is read or written once: the pyramid, the scratch copy
 OVERVIEW_CHUNK_PX = 8192  # columns averaged at once (even): temporaries of 8192 x a band's rows, never its width
 
 

@@ -43,7 +43,7 @@ from workers.photo_io import WindowReader, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import (
     COG_BLOCK_PX,
-    PYRAMID_CACHE_MIB,
+    STREAM_CACHE_MIB,
     open_block_writer,
     open_index_writer,
     open_window_reader,
@@ -174,7 +174,7 @@ def finish(
     tmp, tmp_index = ws.mosaic_scratch_path(), ws.frame_index_scratch_path()
     transform = geo.transform if geo.georeferenced else None
     with (
-        rasterio.Env(GDAL_CACHEMAX=PYRAMID_CACHE_MIB),  # blocks written once: not held in GDAL's cache (5 % of RAM)
+        rasterio.Env(GDAL_CACHEMAX=STREAM_CACHE_MIB),  # blocks written once: not held in GDAL's cache (5 % of RAM)
         open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=None) as write,
         open_index_writer(tmp_index, geo.width, geo.height, geo.epsg, transform, compress=None) as write_index,
     ):
