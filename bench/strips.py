@@ -5,11 +5,14 @@ Run by hand from the repository root::
     .venv/bin/python bench/strips.py [--frames 40] [--size 75000 1800] [--options '{"...": ...}'] [--keep DIR]
 
 Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD steps, vignetting, noisy GPS in a
-side ``gps.csv``) before the clock starts; the pipeline then runs in a spawned child process (its own peak
-memory). Printed: stage times and frames per hour, peak RSS, disk (input, outputs, the job folder's peak
-size sampled while it ran), tie-point RMS, every frame corner's
-error against the truth after one similarity (ground px, which are native px), the frame centres' absolute
-error in metres against the GPS noise / sqrt(frames) the issue asks for, and the mosaic's size.
+side ``gps.csv``; ``--render-processes`` at once) before the clock starts; with ``--keep DIR`` a strip rendered
+there before with the same arguments is used again (its truth pickled beside it) and the job folder is
+replaced. The pipeline then runs in a spawned child process (its own peak memory). Printed: stage times and
+frames per hour, peak RSS, disk (input, outputs, the job folder's peak size sampled while it ran), tie-point
+RMS, every frame corner's error against the truth after one similarity (ground px, which are native px), the
+frame centres' absolute error in metres against the GPS noise / sqrt(frames) the issue asks for, the mosaic's
+size, and two web-map tiles read back from the mosaic by rio-tiler: one at its coarsest zoom (from the smallest
+overview) and one at its finest (full resolution), each with its time and the share of it covered.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import argparse
 import contextlib
 import json
 import multiprocessing as mp
+import pickle
 import shutil
 import sys
 import tempfile
@@ -150,6 +154,57 @@ def truth_errors(strip: Any, job: Path) -> dict[str, float]:
     return out
 
 
+def tiles_read_back(mosaic: Path) -> dict[str, float]:
+    """rio-tiler's 256 px tiles at the mosaic's centre at its coarsest and finest zooms: seconds and the share of
+    pixels covered (each tile opens the COG afresh, as a tile server's request does)."""
+    from rio_tiler.constants import WGS84_CRS
+    from rio_tiler.io import Reader
+
+    out: dict[str, float] = {}
+    with Reader(str(mosaic)) as cog:
+        west, south, east, north = cog.get_geographic_bounds(WGS84_CRS)
+        zooms = {"min": cog.minzoom, "max": cog.maxzoom}
+        out["overview_levels"] = len(cog.info().overviews or [])
+    for name, zoom in zooms.items():
+        started = time.perf_counter()
+        with Reader(str(mosaic)) as cog:
+            tile = cog.tms.tile((west + east) / 2, (south + north) / 2, zoom)
+            image = cog.tile(tile.x, tile.y, zoom)
+        out[f"tile_{name}_zoom"] = zoom
+        out[f"tile_{name}_s"] = time.perf_counter() - started
+        out[f"tile_{name}_covered"] = float(image.mask.mean() / 255)
+    return out
+
+
+def render(args: argparse.Namespace, root: Path) -> Any:
+    """The strip the arguments ask for: rendered into ``root / "frames"``, or, when ``root`` holds one rendered
+    with the same arguments (``strip.pickle``), that one."""
+    from tests.strip_scenes import make_strip
+
+    key = {"frames": args.frames, "size": list(args.size), "overlap": args.overlap, "gps_noise_m": args.gps_noise_m}
+    saved = root / "strip.pickle"
+    if saved.exists():
+        with saved.open("rb") as f:
+            kept_key, strip = pickle.load(f)
+        if kept_key == key and all(path.exists() for path in strip.paths):
+            print(f"using the {args.frames} frames rendered in {root / 'frames'}")
+            return strip
+    saved.unlink(missing_ok=True)
+    started = time.perf_counter()
+    strip = make_strip(
+        root / "frames",
+        args.frames,
+        tuple(args.size),
+        overlap=args.overlap,
+        gps_noise_m=args.gps_noise_m,
+        processes=args.render_processes,
+    )
+    with saved.open("wb") as f:
+        pickle.dump((key, strip), f)
+    print(f"rendered {args.frames} frames of {args.size[0]}x{args.size[1]} in {time.perf_counter() - started:.0f} s")
+    return strip
+
+
 def folder_bytes(folder: Path) -> int:
     total = 0
     for path in folder.rglob("*"):
@@ -167,19 +222,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--options", type=json.loads, default={}, help="job options over the strip defaults")
     parser.add_argument("--keep", type=Path, default=None, help="keep frames and job here (default: a temp dir)")
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
+    parser.add_argument("--render-processes", type=int, default=2, help="frames rendered at once")
     args = parser.parse_args(argv)
-    from tests.strip_scenes import make_strip
     from workers.workspace import JobWorkspace
 
     root = args.keep or Path(tempfile.mkdtemp(prefix="strips-"))
     try:
-        started = time.perf_counter()
-        strip = make_strip(
-            root / "frames", args.frames, tuple(args.size), overlap=args.overlap, gps_noise_m=args.gps_noise_m
-        )
-        print(
-            f"rendered {args.frames} frames of {args.size[0]}x{args.size[1]} in {time.perf_counter() - started:.0f} s"
-        )
+        root.mkdir(parents=True, exist_ok=True)
+        strip = render(args, root)
+        shutil.rmtree(root / "job", ignore_errors=True)
         options = {**DEFAULT_OPTIONS, **args.options}
         result = in_child(str(root / "frames"), str(root / "job"), options, watch=root / "job")
         if not result["ok"]:
@@ -215,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
             # the fixes: sigma sqrt(trace(hat) / n) = 2 sigma / sqrt(n), twice the figure above
             "centre_abs_floor_rms_m": 2 * args.gps_noise_m / np.sqrt(args.frames),
             **truth_errors(strip, root / "job"),
+            **tiles_read_back(JobWorkspace(root / "job").mosaic_path()),
         }
         for key, value in figures.items():
             print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")

@@ -25,8 +25,10 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import multiprocessing
 import warnings
 from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -289,6 +291,7 @@ def make_strip(
     exposure_jitter: float = 0.02,
     origin_latlon: tuple[float, float] = (47.0, 11.0),
     jpeg_quality: int = 90,
+    processes: int = 1,
 ) -> SyntheticStrip:
     """Render a strip of a multi-lens aerial camera into ``out_dir`` and return it with its truth.
 
@@ -334,6 +337,9 @@ def make_strip(
         WGS84 ``(lat, lon)`` of the ground extent's centre.
     jpeg_quality : int
         GDAL JPEG quality, 1-100.
+    processes : int
+        Frames rendered at once, each in its own spawned process (one OpenCV thread each); the bytes written
+        do not depend on it.
 
     Returns
     -------
@@ -342,8 +348,8 @@ def make_strip(
     _check_strip_args(n_frames, frame_size, overlap, compression, tiled, dtype, rotation_deg, scale_jitter, perspective)
     if not (0 <= vignetting < 1 and 0 <= ccd_step < 0.5 and ccd_segments >= 1 and gps_noise_m >= 0):
         raise ValueError("vignetting must be in [0, 1), ccd_step in [0, 0.5), ccd_segments >= 1, gps_noise_m >= 0")
-    if not (0 <= exposure_jitter < 0.5 and 1 <= jpeg_quality <= 100):
-        raise ValueError("exposure_jitter must be in [0, 0.5) and jpeg_quality in [1, 100]")
+    if not (0 <= exposure_jitter < 0.5 and 1 <= jpeg_quality <= 100 and processes >= 1):
+        raise ValueError("exposure_jitter must be in [0, 0.5), jpeg_quality in [1, 100] and processes >= 1")
     rng = np.random.default_rng(seed)
     local = _strip_homographies(rng, n_frames, frame_size, overlap, rotation_deg, scale_jitter, perspective)
     ground_w, ground_h = _ground_size(local, frame_size)
@@ -376,8 +382,16 @@ def make_strip(
     )
     strip = _with_gps(strip, altitude_m, noise)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for i in range(n_frames):
-        _write_frame(strip, i, compression, tiled, bigtiff, jpeg_quality)
+    frame_args = [(strip, i, compression, tiled, bigtiff, jpeg_quality) for i in range(n_frames)]
+    if processes == 1 or n_frames == 1:
+        for args in frame_args:
+            _write_frame(*args)
+    else:
+        context = multiprocessing.get_context("spawn")  # no fork of a process holding GDAL and OpenCV threads
+        workers = min(processes, n_frames)
+        with ProcessPoolExecutor(workers, context, initializer=cv2.setNumThreads, initargs=(1,)) as pool:
+            for _ in pool.map(_write_frame, *zip(*frame_args, strict=True)):
+                pass  # a frame that failed raises here
     _write_gps_csv(strip)
     return strip
 

@@ -65,9 +65,9 @@ def _overlap_points(strip: SyntheticStrip, i: int, count: int, seed: int) -> tup
     return points[keep], other[keep]
 
 
-def test_same_seed_gives_the_same_files(tmp_path: Path) -> None:
+def test_same_seed_gives_the_same_files_rendered_in_one_process_or_two(tmp_path: Path) -> None:
     args: dict[str, Any] = {"n_frames": 2, "frame_size": (4200, 160), "seed": 11}
-    first, second = make_strip(tmp_path / "a", **args), make_strip(tmp_path / "b", **args)
+    first, second = make_strip(tmp_path / "a", **args), make_strip(tmp_path / "b", processes=2, **args)
     for a, b in zip(first.paths + [first.gps_path], second.paths + [second.gps_path], strict=True):
         assert a.read_bytes() == b.read_bytes(), a.name
     other = make_strip(tmp_path / "c", **{**args, "seed": 12})
