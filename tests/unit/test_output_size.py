@@ -15,6 +15,9 @@ def test_a_gigapixel_strip_is_fine_where_the_disk_holds_it() -> None:
     assert output_size_problem(width, height, frames_px, free_bytes=need + 1) is None
     problem = output_size_problem(width, height, frames_px, free_bytes=need // 2)
     assert problem is not None and "GB of free disk" in problem and f"{need / 1e9:.1f}" in problem
+    # lossy JPEG tiles take far less: a disk too small for the deflate COG holds the JPEG one
+    assert disk_needed(width, height, "jpeg") < need / 2
+    assert output_size_problem(width, height, frames_px, free_bytes=need // 2, compression="jpeg") is None
 
 
 def test_a_grid_far_larger_than_its_frames_is_a_broken_alignment() -> None:

@@ -56,7 +56,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     frames_px = factor**2 * sum(
         polygon_area(apply_homography(H, frame_corners(frames[k].width, frames[k].height))) for k, H in homs.items()
     )
-    problem = output_size_problem(result.width, result.height, frames_px, shutil.disk_usage(ws.root).free)
+    free = shutil.disk_usage(ws.root).free
+    problem = output_size_problem(result.width, result.height, frames_px, free, cfg.cog_compression)
     if problem:
         raise PipelineError(problem)
     ws.save_georef(result)

@@ -124,7 +124,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         )
     )
     grid = _grid(adjusted["world"], homographies, sizes, gsd, report["gps_residual_rms_m"])
-    problem = output_size_problem(grid.width, grid.height, None, shutil.disk_usage(ws.root).free)
+    free = shutil.disk_usage(ws.root).free
+    problem = output_size_problem(grid.width, grid.height, None, free, cfg.cog_compression)
     if problem:
         raise PipelineError(problem)
     ws.save_georef(grid)

@@ -17,20 +17,26 @@ MAX_SPREAD = 1000.0  # planar: a grid this many times the frames' own area means
 # 1.2 B/px on drone mosaics, 1.7 on a synthetic strip's busy ground, deflate with predictor; 2 allows for busier
 # ground). Past it the bands are the COG's own tiles, assembled into it and deleted as they are copied
 # (workers/cog_writer.py): the COG and a band, 1.01x the COGs on bench/cog_disk.py's 0.6 Gpx mosaic, where the
-# scratch path peaked at 2.74x (the 2.5 Gpx strip of bench/strips.py at 5.05 B/px).
+# scratch path peaked at 2.74x (the 2.5 Gpx strip of bench/strips.py at 5.05 B/px). JPEG (quality 90) COGs took
+# 0.36 B/px with their overviews and the frame index on that strip's ground (bench/strips.py, 20000 px frames);
+# 0.75 allows for busier ground, as 2 does for the lossless codecs.
 SCRATCH_RAW_MAX_PX = 500_000_000
-COG_BYTES_PER_PX = 2.0
+COG_BYTES_PER_PX = {"deflate": 2.0, "zstd": 2.0, "lzw": 2.0, "jpeg": 0.75}
 
 
-def disk_needed(width: int, height: int) -> int:
-    """Bytes of free disk a ``width`` x ``height`` mosaic needs while it is written (an estimate)."""
+def disk_needed(width: int, height: int, compression: str = "deflate") -> int:
+    """Bytes of free disk a ``width`` x ``height`` mosaic needs while it is written (an estimate), its COG
+    compressed with ``compression`` (a ``cog_compression`` option)."""
     px = width * height
+    cog = COG_BYTES_PER_PX[compression]
     if px > SCRATCH_RAW_MAX_PX:
-        return int(px * COG_BYTES_PER_PX * 1.1)  # the COGs, a band and the overviews' last tile rows
-    return int(px * (4.0 * 4 / 3 + COG_BYTES_PER_PX))
+        return int(px * cog * 1.1)  # the COGs, a band and the overviews' last tile rows
+    return int(px * (4.0 * 4 / 3 + cog))
 
 
-def output_size_problem(width: int, height: int, frames_px: float | None, free_bytes: int) -> str | None:
+def output_size_problem(
+    width: int, height: int, frames_px: float | None, free_bytes: int, compression: str = "deflate"
+) -> str | None:
     """Why a ``width`` x ``height`` px mosaic cannot be written, in words, or None.
 
     ``frames_px``: the frames' own area on the grid, summed (None: not checked). There is no fixed cap on the
@@ -41,7 +47,7 @@ def output_size_problem(width: int, height: int, frames_px: float | None, free_b
             f"the mosaic would be {width}x{height} px, {width * height / max(frames_px, 1):.0f} times its "
             "frames' area; the alignment is degenerate (frames do not lie in one plane)"
         )
-    need = disk_needed(width, height)
+    need = disk_needed(width, height, compression)
     if need > free_bytes:
         return (
             f"a {width}x{height} px mosaic needs about {need / 1e9:.1f} GB of free disk to be written and "
