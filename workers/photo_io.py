@@ -30,6 +30,15 @@ def reads_by_window(path: str | Path) -> bool:
     return Path(path).suffix.lower() in TIFF_SUFFIXES
 
 
+def dct_block(path: str | Path) -> int:
+    """Width in px of the blocks the photo's codec transforms: 8 for JPEG (a JPEG file, or a TIFF whose tiles
+    or strips are JPEG), 1 for the others (lossless: no blocks to smear an edge across)."""
+    if not reads_by_window(path):
+        return 8 if Path(path).suffix.lower() in (".jpg", ".jpeg") else 1
+    with rasterio.open(path) as src:
+        return 8 if src.compression is not None and src.compression.name == "jpeg" else 1
+
+
 def read_reduced(path: str | Path, max_px: int) -> tuple[np.ndarray, tuple[int, int]] | None:
     """The photo shrunk so its longest side is at most ``max_px`` (area average, no aliasing), and its
     full (width, height); None when it cannot be decoded.

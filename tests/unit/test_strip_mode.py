@@ -24,8 +24,9 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     assert errors["centre_abs_rms_m"] < 2 * 0.82, errors
     # brightness: each frame's gain undoes part of its exposure (Brown & Lowe's prior holds gains near 1: the
     # spread of the two together 0.56x the exposures' own here; gains of 1, as before the plan saw the strip's
-    # overlaps, give 1x), and the CCD sub-images' steps are found to about a third of their 3 % size (their
-    # joins every 250 px fall inside JPEG blocks, which smear a step: 10 % on block edges, tests/unit/test_ccd.py)
+    # overlaps, give 1x), and the CCD sub-images' steps are found with a mean error of 0.38 of their 3 % size:
+    # their joins every 250 px mostly fall inside JPEG blocks, measured across the block, which takes the rows of
+    # many frames to average (these are 6 of 400 rows; 10 % on block edges, tests/unit/test_ccd.py)
     ws = JobWorkspace(tmp_path / "job")
     composed = ws.load_stage_report("compose_mosaic")
     assert composed is not None

@@ -39,7 +39,7 @@ from workers.algorithms.mosaic import (
 from workers.cog_writer import band_fits, open_cog_band_writer, open_cog_index_band_writer, write_cog_from_bands
 from workers.config import MosaicConfig
 from workers.parallel import RecentCache, ordered_map, thread_count
-from workers.photo_io import WindowReader, reads_by_window
+from workers.photo_io import WindowReader, dct_block, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import (
     COG_BLOCK_PX,
@@ -101,7 +101,12 @@ def _ccd_gains(ws: JobWorkspace, segments: int) -> np.ndarray:
     (width,) = widths
     if width < 2 * segments:
         raise PipelineError(f"frames {width} px wide cannot be joined from {segments} CCD sub-images")
-    return ccd_gains(lambda k, c0, c1: np.asarray(_photo(ws, frames, k)[:, c0:c1]), sorted(frames), width, segments)
+
+    def columns_of(k: int, c0: int, c1: int) -> np.ndarray:
+        return np.asarray(_photo(ws, frames, k)[:, c0:c1])
+
+    blocks = {k: dct_block(frame.path) for k, frame in frames.items()}  # a join inside a JPEG block is smeared
+    return ccd_gains(columns_of, sorted(frames), width, segments, blocks)
 
 
 def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
