@@ -154,6 +154,16 @@ def truth_errors(strip: Any, job: Path) -> dict[str, float]:
     return out
 
 
+def ccd_error(strip: Any, report: dict[str, Any]) -> float | None:
+    """The CCD steps' mean error over their mean size (log brightness), as compose_mosaic found them; None when
+    the job did not look for them."""
+    found = report.get("ccd_gains")
+    if not found or len(found) != len(strip.ccd_gains):
+        return None
+    truth = np.diff(np.log(strip.ccd_gains))
+    return float(np.abs(np.diff(np.log(found)) - truth).mean() / np.abs(truth).mean())
+
+
 def tiles_read_back(mosaic: Path) -> dict[str, float]:
     """rio-tiler's 256 px tiles at the mosaic's centre at its coarsest and finest zooms: seconds and the share of
     pixels covered (each tile opens the COG afresh, as a tile server's request does)."""
@@ -266,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
             # the fixes: sigma sqrt(trace(hat) / n) = 2 sigma / sqrt(n), twice the figure above
             "centre_abs_floor_rms_m": 2 * args.gps_noise_m / np.sqrt(args.frames),
             **truth_errors(strip, root / "job"),
+            "ccd_step_error": ccd_error(strip, JobWorkspace(root / "job").load_stage_report("compose_mosaic") or {}),
             **tiles_read_back(JobWorkspace(root / "job").mosaic_path()),
         }
         for key, value in figures.items():
