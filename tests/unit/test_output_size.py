@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from workers.algorithms.mosaic import disk_needed, output_size_problem, polygon_area
+from workers.algorithms.mosaic import disk_needed, output_size_problem, photo_px_per_plane_px, polygon_area
 
 
 def test_a_gigapixel_strip_is_fine_where_the_disk_holds_it() -> None:
@@ -30,3 +31,13 @@ def test_polygon_area() -> None:
     square = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]
     assert polygon_area(np.array(square)) == 100.0
     assert polygon_area(np.array(square[::-1])) == 100.0
+
+
+def test_photo_px_per_plane_px_is_measured_through_the_homography() -> None:
+    """A working copy at 1/8 of a 75000 x 1800 photo, placed on a plane the adjustment shrank to 0.92 and
+    turned: one plane px spans 8 / 0.92 photo px, not the 8 the working copy alone says."""
+    turn = np.deg2rad(30.0)
+    H = np.array([[np.cos(turn), -np.sin(turn), 40.0], [np.sin(turn), np.cos(turn), -7.0], [0.0, 0.0, 1.0]])
+    H[:2, :2] *= 0.92
+    assert photo_px_per_plane_px(H, 9375, 225, 75_000, 1_800) == pytest.approx(8 / 0.92, rel=1e-9)
+    assert photo_px_per_plane_px(np.eye(3), 2000, 1500, 4000, 3000) == pytest.approx(2.0, rel=1e-9)

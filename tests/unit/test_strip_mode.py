@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench.strips import truth_errors
 from tests.strip_scenes import make_strip
@@ -16,6 +17,9 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     strip = make_strip(tmp_path / "frames", 6, (8000, 400), overlap=0.65, gps_noise_m=1.0, seed=3)
     report = process_directory(tmp_path / "frames", tmp_path / "job", {"mode": "strip", "ccd_segments": 32})
     assert len(report["frames_used"]) == 6 and report["mosaic"]["resolution"] == "native"
+    # at the frames' own resolution (their scales jitter 0.5 %), however the adjustment scaled the plane
+    assert report["gsd_m"] == pytest.approx(strip.gsd_m, rel=0.015), report["gsd_m"]
+    assert report["mosaic"]["photo_px_per_px"] == pytest.approx(1.0, rel=1e-6)
     assert report["tie_point_rms_px_original"] < 0.5
     errors = truth_errors(strip, tmp_path / "job")
     # the issue's goal: 1 px after one similarity (7 px before the plane was levelled, 0.14 px now)

@@ -14,6 +14,7 @@ from workers.algorithms.mosaic import (
     frame_corners,
     map_grid,
     output_size_problem,
+    photo_px_per_plane_px,
     pixel_grid,
     polygon_area,
     refine_grid,
@@ -28,15 +29,19 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     """Write ``georef.json``: output pixel -> plane homography, CRS and pixel size."""
     progress(0.0, "fitting GPS")
     frames = {f.index: f for f in ws.load_frames()}
-    homs = ws.load_alignment().homographies
+    align = ws.load_alignment()
+    homs = align.homographies
     corners = np.concatenate(
         [apply_homography(H, frame_corners(frames[k].width, frames[k].height)) for k, H in homs.items()]
     )
     fit, reason = _fit_gps(frames, homs, cfg.min_gps_frames)
     grid = map_grid(corners, fit["plane_to_map"]) if fit is not None else pixel_grid(corners)
-    # native: the grid as fine as the photos are, i.e. their working copies' scale undone (the median over
-    # the frames, should a flight mix photo sizes)
-    factor = float(np.median([1.0 / frames[k].scale for k in homs])) if cfg.output_resolution == "native" else 1.0
+    # native: the grid as fine as the reference photo is, measured through its homography (the plane has its
+    # working copy's px only until the adjustment scales it)
+    ref = frames[align.reference]
+    factor = 1.0
+    if cfg.output_resolution == "native":
+        factor = photo_px_per_plane_px(homs[ref.index], ref.width, ref.height, ref.orig_width, ref.orig_height)
     if factor != 1.0:
         grid = refine_grid(grid, factor)
     if fit is not None:

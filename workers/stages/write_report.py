@@ -10,7 +10,13 @@ import cv2
 import numpy as np
 
 from workers.algorithms.geometry import Camera, lonlat_to_utm, utm_to_lonlat
-from workers.algorithms.mosaic import TiePoints, apply_homography, frame_corners, tie_residuals_px
+from workers.algorithms.mosaic import (
+    TiePoints,
+    apply_homography,
+    frame_corners,
+    photo_px_per_plane_px,
+    tie_residuals_px,
+)
 from workers.algorithms.sfm import LocalFrame, parse_gcp_file
 from workers.config import MosaicConfig
 from workers.pipeline import pipeline_key, stage_names
@@ -37,6 +43,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     outline = [_to_crs(geo, ring) for ring in coverage.outline_px]
     ref = frames[align.reference]
     rms = align.tie_point_rms_px
+    # the reference photo's px per plane px: measured through its homography on a plane the adjustment may have
+    # scaled (a strip's GPS does); ortho frames' tie points are in their working copies' px
+    photo_per_plane = 1.0 / ref.scale
+    if cfg.mode != "ortho":
+        photo_per_plane = photo_px_per_plane_px(homs[ref.index], ref.width, ref.height, ref.orig_width, ref.orig_height)
     report: dict[str, Any] = {
         "kind": "mosaic",
         "mode": cfg.mode,
@@ -46,13 +57,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         "reference_frame": ref.name,
         "pairs": _pair_entries(pairs, frames, align),
         "tie_point_rms_px": rms,
-        "tie_point_rms_px_original": rms / ref.scale if rms is not None else None,
+        "tie_point_rms_px_original": rms * photo_per_plane if rms is not None else None,
         "tie_points": align.tie_points,
         "georeferenced": geo.georeferenced,
         "georeference_note": geo.reason,
         "crs": f"EPSG:{geo.epsg}" if geo.georeferenced else None,
         "gsd_m": geo.gsd_m,  # the mosaic's pixel size
-        "gsd_original_m": geo.gsd_m * geo.output_scale * ref.scale if geo.gsd_m else None,  # the photos' own
+        "gsd_original_m": geo.gsd_m * geo.output_scale / photo_per_plane if geo.gsd_m else None,  # the photos'
         "gps_residual_rms_m": geo.gps_residual_rms_m,
         "gps_drift_m": geo.gps_drift_m,  # the route's largest systematic miss, noise averaged over a tenth of it
         "mosaic": {
@@ -66,7 +77,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
             "seam_visibility": (ws.load_stage_report("compose_mosaic") or {}).get("seam_visibility"),
             # "working" or "native", and how many of the reference photo's px one mosaic px spans
             "resolution": cfg.output_resolution if cfg.mode != "ortho" else "working",
-            "photo_px_per_px": 1.0 / (geo.output_scale * ref.scale),
+            "photo_px_per_px": photo_per_plane / geo.output_scale,
         },
         "stage_seconds": _stage_seconds(ws, pipeline_key("mosaic", {"mode": cfg.mode})),
     }

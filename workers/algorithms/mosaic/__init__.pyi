@@ -112,6 +112,9 @@ from .grid import (
     output_size_problem as output_size_problem,
 )
 from .grid import (
+    photo_px_per_plane_px as photo_px_per_plane_px,
+)
+from .grid import (
     pixel_grid as pixel_grid,
 )
 from .grid import (

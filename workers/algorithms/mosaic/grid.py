@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from workers.algorithms.geometry import FLIP_Y, fit_similarity, lonlat_to_utm, similarity_scale, utm_epsg
-from workers.algorithms.mosaic.alignment import apply_homography
+from workers.algorithms.mosaic.alignment import apply_homography, frame_corners
 
 MAX_OUTPUT_PIXELS = 4_000_000_000  # ortho mode: a larger grid means a ground range gone wrong
 MAX_SPREAD = 1000.0  # planar: a grid this many times the frames' own area means the alignment broke
@@ -55,6 +55,15 @@ def output_size_problem(
             "output_resolution)"
         )
     return None
+
+
+def photo_px_per_plane_px(H: np.ndarray, width: int, height: int, photo_width: int, photo_height: int) -> float:
+    """How many of a photo's own px one plane px spans where the photo lies: ``H`` maps its working copy
+    (``width`` x ``height``) to the plane, and the photo is ``photo_width`` x ``photo_height``. The plane is the
+    reference working copy's only until the adjustment moves it (a strip's GPS levels and scales it: 0.90-0.95
+    of the reference's size along a 305-frame strip), so this is measured, not assumed."""
+    area = polygon_area(apply_homography(H, frame_corners(width, height)))
+    return math.sqrt(photo_width * photo_height / area)
 
 
 def polygon_area(corners: np.ndarray) -> float:
