@@ -8,6 +8,7 @@ adjustment is the plane's own: the root frame's tilt, which no tie point can see
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.strip_scenes import _strip_homographies
 from workers.algorithms.geometry import fit_similarity
@@ -18,6 +19,7 @@ from workers.algorithms.mosaic import (
     frame_corners,
     level_plane,
     refine_homographies,
+    triple_overlap_share,
 )
 
 SIZE = (20_000, 800)  # a strip frame at a quarter of the camera's width
@@ -81,3 +83,22 @@ def test_levelling_is_a_plane_homography_and_idempotent() -> None:
     centre = np.array([[(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2]])
     mean = np.mean([apply_homography(adjusted[k], centre)[0] for k in adjusted], axis=0)
     assert np.linalg.norm(apply_homography(moves[0], mean[None]) - mean) < 1e-6
+
+
+@pytest.mark.parametrize(("overlap", "share"), [(0.5, 0.0), (0.45, 0.0), (0.55, 1.0), (0.6, 1.0)])
+def test_triple_overlap_share_tells_a_strip_that_cannot_carry_its_scale(overlap: float, share: float) -> None:
+    """A strip of 75000 x 1800 frames (working copies at 1/8), each ``(1 - overlap) * height`` north of the
+    last, turned by up to 0.3 degrees: above 50 % forward overlap every frame's neighbours share ground."""
+    rng = np.random.default_rng(3)
+    width, height = 9375, 225
+    homographies = {}
+    for k in range(12):
+        turn = np.deg2rad(rng.uniform(-0.3, 0.3))
+        rotate = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
+        centre = _shift((width - 1) / 2, (height - 1) / 2)
+        homographies[k] = _shift(0.0, -k * (1 - overlap) * height) @ centre @ rotate @ np.linalg.inv(centre)
+    assert triple_overlap_share(homographies, dict.fromkeys(homographies, (width, height))) == share
+
+
+def _shift(dx: float, dy: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])

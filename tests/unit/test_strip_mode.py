@@ -20,6 +20,8 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     # at the frames' own resolution (their scales jitter 0.5 %), however the adjustment scaled the plane
     assert report["gsd_m"] == pytest.approx(strip.gsd_m, rel=0.015), report["gsd_m"]
     assert report["mosaic"]["photo_px_per_px"] == pytest.approx(1.0, rel=1e-6)
+    assert report["triple_overlap_share"] == 1.0  # 65 % forward overlap: scale carried, no warning of it
+    assert not any("forward overlap" in warning for warning in report["warnings"])
     assert report["tie_point_rms_px_original"] < 0.5
     errors = truth_errors(strip, tmp_path / "job")
     # the issue's goal: 1 px after one similarity (7 px before the plane was levelled, 0.14 px now)

@@ -16,6 +16,7 @@ from workers.algorithms.mosaic import (
     frame_corners,
     photo_px_per_plane_px,
     tie_residuals_px,
+    triple_overlap_share,
 )
 from workers.algorithms.sfm import LocalFrame, parse_gcp_file
 from workers.config import MosaicConfig
@@ -88,6 +89,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         report["ortho_surface"] = ortho.get("surface")
         report["dsm"] = ortho.get("dsm")  # the surface as dsm.tif (None on the plane or without map coordinates)
     report["warnings"] = _warnings(report)
+    if cfg.mode == "strip":
+        sizes = {k: (frames[k].width, frames[k].height) for k in homs}
+        report["triple_overlap_share"] = share = triple_overlap_share(homs, sizes)
+        if share < 0.5:
+            report["warnings"].append(
+                f"only {share:.0%} of the frames share ground with both neighbours: with 50 % forward overlap or "
+                "less the scale is not carried from frame to frame and the frames' width can drift along the "
+                "strip; fly with 55-60 % forward overlap"
+            )
     ws.save_report(report)
     progress(0.5, "report pictures")
     data = _figure_data(ws, cfg, frames, align, geo, to_out, report)

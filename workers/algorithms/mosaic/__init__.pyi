@@ -27,6 +27,9 @@ from .alignment import (
 from .alignment import (
     tie_residuals_px as tie_residuals_px,
 )
+from .alignment import (
+    triple_overlap_share as triple_overlap_share,
+)
 from .blending import (
     feather_weights as feather_weights,
 )
