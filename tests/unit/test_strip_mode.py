@@ -10,6 +10,7 @@ import pytest
 from bench.strips import truth_errors
 from tests.strip_scenes import make_strip
 from workers.pipeline import process_directory, run_stage
+from workers.stages.write_report import _warnings
 from workers.workspace import JobWorkspace
 
 
@@ -57,3 +58,10 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
         again = np.load(ws.root / "matches" / name)
         for key, values in arrays.items():
             np.testing.assert_array_equal(again[key], values)
+
+
+def test_a_strip_whose_frames_share_no_ground_with_both_neighbours_is_warned_of() -> None:
+    base = {"frames_rejected": [], "frames_used": []}
+    assert not _warnings(base) and not _warnings({**base, "triple_overlap_share": 0.5})
+    (warning,) = _warnings({**base, "triple_overlap_share": 0.01})
+    assert "1% of the frames" in warning and "55-60 % forward overlap" in warning

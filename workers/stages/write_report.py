@@ -88,16 +88,10 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         ortho = ws.load_stage_report("orthorectify_frames") or {}
         report["ortho_surface"] = ortho.get("surface")
         report["dsm"] = ortho.get("dsm")  # the surface as dsm.tif (None on the plane or without map coordinates)
-    report["warnings"] = _warnings(report)
     if cfg.mode == "strip":
         sizes = {k: (frames[k].width, frames[k].height) for k in homs}
-        report["triple_overlap_share"] = share = triple_overlap_share(homs, sizes)
-        if share < 0.5:
-            report["warnings"].append(
-                f"only {share:.0%} of the frames share ground with both neighbours: with 50 % forward overlap or "
-                "less the scale is not carried from frame to frame and the frames' width can drift along the "
-                "strip; fly with 55-60 % forward overlap"
-            )
+        report["triple_overlap_share"] = triple_overlap_share(homs, sizes)
+    report["warnings"] = _warnings(report)
     ws.save_report(report)
     progress(0.5, "report pictures")
     data = _figure_data(ws, cfg, frames, align, geo, to_out, report)
@@ -123,6 +117,13 @@ def _warnings(report: dict[str, Any]) -> list[str]:
     if rejected:
         total = len(report["frames_rejected"]) + len(report["frames_used"])
         out.insert(0, f"{len(rejected)} of {total} frames are not in the map: {', '.join(rejected)}")
+    share = report.get("triple_overlap_share")  # strips only
+    if share is not None and share < 0.5:
+        out.append(
+            f"only {share:.0%} of the frames share ground with both neighbours: with 50 % forward overlap or less "
+            "the scale is not carried from frame to frame and the frames' width can drift along the strip; fly "
+            "with 55-60 % forward overlap"
+        )
     return out
 
 
