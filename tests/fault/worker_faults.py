@@ -45,7 +45,9 @@ def _fault(kind: str, stage: str, ws: Any) -> None:
     hold = folder / f"hold-{kind}{stage}"
     if hold.exists():
         marker = f"held-{kind}{job}-{stage}" + (f"-{os.getpid()}" if kind else "")
-        (folder / marker).write_text(str(os.getpid()))
+        scratch = folder / f".{marker}.tmp"
+        scratch.write_text(str(os.getpid()))
+        scratch.rename(folder / marker)  # whole when it appears: a test reads the pid as soon as it sees the name
         while hold.exists():
             time.sleep(0.05)
 
