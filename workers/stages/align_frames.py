@@ -86,17 +86,35 @@ def _adjust(
         )
     initial = chain_homographies(root, parent, {p.pair: p.model for p in pairs if p.model is not None})
     ties = {p.pair: TiePoints(*ws.load_matches(p.pair)) for p in pairs if p.i in initial and p.j in initial}
+    return root, adjust_plane(cfg, frames, initial, root, ties), ties
+
+
+def adjust_plane(
+    cfg: MosaicConfig,
+    frames: dict[int, Frame],
+    initial: dict[int, np.ndarray],
+    root: int,
+    ties: dict[tuple[int, int], TiePoints],
+) -> dict[int, np.ndarray]:
+    """Frame -> plane homographies of the frames in ``initial`` (the chained start, ``root`` the identity):
+    adjusted by the tie points, levelled, then adjusted with the frames' GPS fixes if they have enough."""
     sizes = {k: (frames[k].width, frames[k].height) for k in initial}
 
-    def adjust(start: dict[int, np.ndarray], positions: dict[int, tuple[np.ndarray, float]]) -> dict[int, np.ndarray]:
+    def adjust(
+        start: dict[int, np.ndarray],
+        positions: dict[int, tuple[np.ndarray, float]],
+        fixed: int | None = root,
+        shape_weight: float = 0.0,
+    ) -> dict[int, np.ndarray]:
         return refine_homographies(
             start,
             ties,
-            root,
+            fixed,
             sizes,
             loss_scale_px=cfg.ransac_threshold_px,
             perspective_damping=cfg.perspective_damping,
             positions=positions,
+            shape_weight=shape_weight,
         )
 
     # Tie points alone first, then the plane levelled (the root frame's tilt taken out of it).
@@ -107,14 +125,23 @@ def _adjust(
     # own (their measured sigma), and again with the similarity refitted to that. Each round starts from the
     # levelled tie-point solution: the perspective damping holds to where it starts, and restarting from
     # a solution the fixes have bent would let the bend grow.
+    #
+    # A strip's frames also have square pixels (``strip_square_pixels``): with that prior no frame is held, the
+    # fixes place the plane and the prior shapes it. Held, the root frame keeps the tilt levelling guessed from a
+    # tie-point solution whose frames' widths were free (at 50 % forward overlap: the plane 8000 px out of true
+    # at a 305-frame strip's ends), and every other frame must follow it against its fix.
     tie_sigma = _tie_sigma_px(levelled, ties)
+    square = cfg.strip_square_pixels if cfg.mode == "strip" else 0.0
     for _ in range(GPS_ROUNDS):
         positions = gps_positions(frames, refined, cfg.gps_sigma_m, cfg.min_gps_frames)
         if not positions:
             break
         weighed = {k: (xy, sigma / tie_sigma) for k, (xy, sigma) in positions.items()}
-        refined = adjust(levelled, weighed)
-    return root, refined, ties
+        if square:
+            refined = adjust(levelled, weighed, fixed=None, shape_weight=tie_sigma / square)
+        else:
+            refined = adjust(levelled, weighed)
+    return refined
 
 
 GPS_ROUNDS = 2  # adjustments with GPS inside, each after refitting the GPS similarity to the plane

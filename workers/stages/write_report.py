@@ -121,8 +121,8 @@ def _warnings(report: dict[str, Any]) -> list[str]:
     if share is not None and share < 0.5:
         out.append(
             f"only {share:.0%} of the frames share ground with both neighbours: with 50 % forward overlap or less "
-            "the scale is not carried from frame to frame and the frames' width can drift along the strip; fly "
-            "with 55-60 % forward overlap"
+            "the scale is not carried from frame to frame and the frames' width rests on GPS and on their pixels "
+            "being square (a few px off at the strip's ends); fly with 55-60 % forward overlap"
         )
     return out
 

@@ -87,11 +87,12 @@ def chain_homographies(root: int, parent: dict[int, int], pairwise: dict[Pair, n
 def refine_homographies(
     initial: dict[int, np.ndarray],
     ties: dict[Pair, TiePoints],
-    root: int,
+    root: int | None,
     frame_sizes: dict[int, tuple[int, int]],
     loss_scale_px: float = 2.0,
     perspective_damping: float = 1000.0,
     positions: dict[int, tuple[np.ndarray, float]] | None = None,
+    shape_weight: float = 0.0,
 ) -> dict[int, np.ndarray]:
     """Adjust all frame->plane homographies jointly so that every tie point pair meets in the plane.
 
@@ -111,7 +112,13 @@ def refine_homographies(
     ``positions`` holds what GPS says about a frame: where its centre lies in the plane and how sure that
     is, ``(xy (2,) plane px, sigma px)``. Each is one more observation, its miss divided by sigma, so a
     long strip cannot bend further than its GPS allows (tie points alone constrain a chain's shape only
-    locally). The root frame is fixed: its position only matters through the plane's placement.
+    locally). The root frame is fixed: its position only matters through the plane's placement. With
+    ``root`` None no frame is: the fixes must then place the plane and ``shape_weight`` shape it.
+
+    ``shape_weight`` adds a prior on each free frame's shape: the aspect ``(a - d) / (a + d)`` and shear
+    ``(b + c) / (a + d)`` of its map's Jacobian ``[[a, b], [c, d]]`` at its centre are zero (square pixels, as a
+    near-nadir camera's), each times ``shape_weight`` one more residual (so 1 / shape_weight of aspect costs as
+    much as a 1 px tie residual).
 
     Parameters
     ----------
@@ -153,6 +160,7 @@ def refine_homographies(
         xy_gps=np.array([xy for _, xy, _ in gps], np.float64).reshape(-1, 2),
         w_gps=np.array([w for _, _, w in gps], np.float64),
         perspective_damping=perspective_damping,
+        shape_weight=shape_weight,
     )
     x = levenberg_marquardt(problem.residuals, problem.normal_equations, np.zeros(8 * len(free)), loss_scale_px)
     C = problem.corrections(x)

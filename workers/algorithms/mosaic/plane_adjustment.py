@@ -60,6 +60,7 @@ class PlaneProblem:
     xy_gps: np.ndarray
     w_gps: np.ndarray
     perspective_damping: float
+    shape_weight: float = 0.0
     _dh: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
 
     @property
@@ -89,7 +90,20 @@ class PlaneProblem:
         M = self.lift @ self.corrections(params)
         miss = _project(M[self.f_i], self.q_i)[0] - _project(M[self.f_j], self.q_j)[0]
         gps = self.w_gps[:, None] * (_project(M[self.f_gps], self.q_gps)[0] - self.xy_gps)
-        return np.concatenate([miss.ravel(), gps.ravel(), self.perspective_damping * params[self.perspective()]])
+        return np.concatenate(
+            [miss.ravel(), gps.ravel(), self.perspective_damping * params[self.perspective()], self._shape(M).ravel()]
+        )
+
+    def free_frames(self) -> np.ndarray:
+        """(n_free,) int: the free frames in slot order."""
+        return np.argsort(self.slot)[len(self.slot) - self.n_free :]
+
+    def _shape(self, M: np.ndarray) -> np.ndarray:
+        """(n_free, 2) each free frame's aspect and shear (:func:`aspect_shear`) times the prior's weight; (0, 2)
+        without the prior."""
+        if not self.shape_weight:
+            return np.zeros((0, 2))
+        return self.shape_weight * aspect_shear(M[self.free_frames()])
 
     def normal_equations(self, params: np.ndarray, f_scale: float) -> tuple[Normal, np.ndarray]:
         """``J^T W J`` and ``J^T W r`` at ``params``, W the soft-L1 IRLS weights ``1 / sqrt(1 + (r/f)^2)``,
@@ -133,6 +147,13 @@ class PlaneProblem:
         damped_at = self.perspective()
         damped = self.perspective_damping * params[damped_at]
         w_damped = _irls(damped, f_scale)
+        if self.shape_weight:
+            free = self.free_frames()
+            shape, d_shape = aspect_shear_derivative(M[free], self.lift[free])
+            r_shape, J_shape = self.shape_weight * shape, self.shape_weight * d_shape
+            w_shape, slots = _irls(r_shape, f_scale), self.slot[free]
+            blocks.add(slots, slots, _weighted_products(J_shape, w_shape, J_shape))
+            np.add.at(gradient, slots, np.einsum("nck,nc->nk", J_shape, w_shape * r_shape))
         flat = gradient[:-1].ravel()
         flat[damped_at] += self.perspective_damping * w_damped * damped
         diagonal = np.zeros(n)
@@ -239,6 +260,41 @@ def _solve(normal: Normal, damping: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     from scipy.sparse.linalg import spsolve
 
     return np.asarray(spsolve((normal + diags(damping)).tocsc(), rhs))
+
+
+def aspect_shear(M: np.ndarray) -> np.ndarray:
+    """(n, 2) aspect ``(a - d) / (a + d)`` and shear ``(b + c) / (a + d)`` of the Jacobian ``[[a, b], [c, d]]`` of
+    each (n, 3, 3) normalised frame -> plane map ``M`` at the frame's centre (normalised (0, 0)). The
+    normalisation is isotropic, so these are the frame pixels' own: zero for square pixels."""
+    return _aspect_shear(M)[0]
+
+
+def aspect_shear_derivative(M: np.ndarray, lift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`aspect_shear` of ``M = A (I + D)`` ((n, 3, 3) ``lift`` ``A``) and its (n, 2, 8) derivative by the
+    eight parameters of ``D``."""
+    value, u, h, J = _aspect_shear(M)
+    # d M / d m: column COL[m] of M gains column ROW[m] of A, the others nothing
+    dM = np.zeros((len(M), 8, 3, 3))
+    dM[:, np.arange(8), :, _COL] = lift[:, :, _ROW].transpose(2, 0, 1)  # indexed (8, n, 3)
+    dh = dM[:, :, :, 2]  # (n, 8, 3)
+    du = (dh[:, :, :2] - u[:, None, :] * dh[:, :, 2:]) / h[:, None, 2:]
+    dN = dM[:, :, :2, :2] - du[:, :, :, None] * M[:, None, 2:3, :2] - u[:, None, :, None] * dM[:, :, 2:3, :2]
+    dJ = (dN - J[:, None] * dh[:, :, 2, None, None]) / h[:, 2, None, None, None]
+    d_trace = dJ[:, :, 0, 0] + dJ[:, :, 1, 1]
+    d_value = np.stack([dJ[:, :, 0, 0] - dJ[:, :, 1, 1], dJ[:, :, 0, 1] + dJ[:, :, 1, 0]], axis=1)  # (n, 2, 8)
+    trace = J[:, 0, 0] + J[:, 1, 1]
+    return value, (d_value - value[:, :, None] * d_trace[:, None, :]) / trace[:, None, None]
+
+
+def _aspect_shear(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`aspect_shear`, with the centre's plane point ``u`` (n, 2), its homogeneous ``h`` (n, 3) and the
+    Jacobian ``J`` (n, 2, 2) it came from."""
+    h = M[:, :, 2]
+    u = h[:, :2] / h[:, 2:]
+    J = (M[:, :2, :2] - u[:, :, None] * M[:, 2:3, :2]) / h[:, 2, None, None]
+    trace = J[:, 0, 0] + J[:, 1, 1]
+    value = np.column_stack([J[:, 0, 0] - J[:, 1, 1], J[:, 0, 1] + J[:, 1, 0]]) / trace[:, None]
+    return value, u, h, J
 
 
 def _pair_products(wi: np.ndarray, wj: np.ndarray, J_i: np.ndarray, J_j: np.ndarray) -> np.ndarray:
