@@ -114,7 +114,7 @@ class MosaicConfig(BaseModel):
     # how square each frame's ground pixels are at its centre (the aspect and shear of its map there), a prior of
     # the adjustment with GPS: a near-nadir survey camera's are square to 1e-4 (1 degree of tilt gives 8e-5).
     # At 50 % forward overlap the tie points leave each frame's width free and GPS only fixes centres: without
-    # it, a 305-frame strip's corners were 822 px off; with it, 5.6. 0: no prior (oblique frames)
+    # it, a 305-frame strip's corners were 822 px off; with it, 6.8. 0: no prior (oblique frames)
     strip_square_pixels: float = Field(1e-4, ge=0.0, le=1.0)
     # -- mode "ortho" only ----------------------------------------------------------------------
     camera: dict[str, Any] | None = None  # a calibrated camera (camera JSON); None: from EXIF focal length

@@ -29,15 +29,17 @@ GPS_NOISE_M = 1.0
 UTM_32N = Transformer.from_crs(32632, 4326, always_xy=True)
 
 
-def _strip(seed: int) -> tuple[list[np.ndarray], dict[int, Frame], dict[tuple[int, int], TiePoints], dict]:
+def _strip(
+    seed: int, overlap: float = 0.5
+) -> tuple[list[np.ndarray], dict[int, Frame], dict[tuple[int, int], TiePoints], dict]:
     """Truth (frame -> ground px), frames with noisy GPS, tie points of consecutive frames, the chained start."""
     rng = np.random.default_rng(seed)
-    truth = _strip_homographies(rng, FRAMES, SIZE, 0.5, 0.3, 0.005, 0.002)
+    truth = _strip_homographies(rng, FRAMES, SIZE, overlap, 0.3, 0.005, 0.002)
     ties, pairwise = {}, {}
     for i in range(FRAMES - 1):
         to_j = np.linalg.inv(truth[i + 1]) @ truth[i]
-        # frame i's top half is frame i + 1's bottom half (north-bound): 400 points spread over it
-        points = np.column_stack([rng.uniform(0, SIZE[0] - 1, 400), rng.uniform(0, 0.48 * SIZE[1], 400)])
+        # frame i's top rows are frame i + 1's bottom rows (north-bound): 400 points spread over them
+        points = np.column_stack([rng.uniform(0, SIZE[0] - 1, 400), rng.uniform(0, (overlap - 0.02) * SIZE[1], 400)])
         seen = apply_homography(to_j, points) + rng.normal(0, 0.1, points.shape)
         ties[(i, i + 1)] = TiePoints(points, seen)
         pairwise[(i, i + 1)] = cv2.findHomography(points, seen, 0)[0]

@@ -126,21 +126,26 @@ def adjust_plane(
     # levelled tie-point solution: the perspective damping holds to where it starts, and restarting from
     # a solution the fixes have bent would let the bend grow.
     #
-    # A strip's frames also have square pixels (``strip_square_pixels``): with that prior no frame is held, the
-    # fixes place the plane and the prior shapes it. Held, the root frame keeps the tilt levelling guessed from a
-    # tie-point solution whose frames' widths were free (at 50 % forward overlap: the plane 8000 px out of true
-    # at a 305-frame strip's ends), and every other frame must follow it against its fix.
+    # A strip's frames also have square pixels (``strip_square_pixels``), a prior of both rounds. In the first no
+    # frame is held: the fixes place the plane and the prior shapes it. Held, the root frame would keep the tilt
+    # levelling guessed from a tie-point solution whose frames' widths were free (at 50 % forward overlap: the
+    # plane 8000 px out of true at a 305-frame strip's ends; every other frame followed it against its fix,
+    # corners 822 px off). That solution levelled, the second holds its root again: free, the fixes' noise along
+    # a straight strip stretched the plane against the prior (55 %, 60 frames: corners 4.4 px off, 1.2 held).
     tie_sigma = _tie_sigma_px(levelled, ties)
     square = cfg.strip_square_pixels if cfg.mode == "strip" else 0.0
-    for _ in range(GPS_ROUNDS):
+    start = levelled
+    for round_ in range(GPS_ROUNDS):
         positions = gps_positions(frames, refined, cfg.gps_sigma_m, cfg.min_gps_frames)
         if not positions:
             break
         weighed = {k: (xy, sigma / tie_sigma) for k, (xy, sigma) in positions.items()}
-        if square:
-            refined = adjust(levelled, weighed, fixed=None, shape_weight=tie_sigma / square)
-        else:
+        if not square:
             refined = adjust(levelled, weighed)
+        elif round_ == 0:
+            refined = start = level_plane(adjust(levelled, weighed, None, tie_sigma / square), sizes)
+        else:
+            refined = adjust(start, weighed, root, tie_sigma / square)
     return refined
 
 
