@@ -343,7 +343,9 @@ class _NearestChain:
         values, row = first, y // 2  # the band's first row is even (bands are 512-row multiples)
         for k, level in enumerate(self.levels):
             if k:
-                values = values[row % 2 :: 2, ::2]
+                # a copy, not a view: a level keeps its rows until it has a tile row of them, 512 bands at the
+                # top level, and a view would keep each band's whole first level (a 305-frame strip: 10 GB)
+                values = np.ascontiguousarray(values[row % 2 :: 2, ::2])
                 row = -(-row // 2)
             if values.shape[0]:
                 level.add(values, None)

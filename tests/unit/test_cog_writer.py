@@ -254,3 +254,31 @@ def test_a_gigapixel_mosaic_is_composed_into_the_same_cogs_with_no_scratch_mosai
     (ws.root / ".mosaic.tif.killed.tif").write_bytes(b"half a COG")  # what a killed process's atomic write leaves
     run_stage(ws, "mosaic", "compose_mosaic")
     same_outputs(ws, before)
+
+
+@pytest.mark.parametrize("kind", ["rgb", "index"])
+def test_an_overview_level_holds_its_own_rows_only(tmp_path: Path, kind: str) -> None:
+    # a tall raster's top level receives a row per band and writes once it has a tile row of them: until then
+    # it must hold those rows, not the bands they came from
+    width, bands = 2048, 40
+    levels = [
+        cog_writer._LevelOut(
+            tmp_path / f"level{factor}", -(-width // factor), -(-512 * bands // factor), "deflate", kind
+        )  # type: ignore[arg-type]
+        for factor in cog_writer.overview_levels(width, 512 * bands)
+    ]
+    chain: Any = cog_writer._NearestChain(levels) if kind == "index" else cog_writer._AverageChain(levels)
+    rng = np.random.default_rng(0)
+    for n in range(bands):
+        if kind == "index":
+            first: Any = rng.integers(0, 40, (256, width // 2), dtype=np.uint16)
+        else:
+            first = (
+                rng.integers(0, 1021, (256, width // 2, 3), dtype=np.uint16),
+                np.full((256, width // 2), 4, np.uint16),
+            )
+        chain.add(first, 512 * n)
+    for level in levels:
+        held = sum((v if v.base is None else v.base).nbytes for v in level.values)
+        own = sum(v.nbytes for v in level.values)
+        assert held <= own + 512 * level.width * 3, (level.width, held, own)  # at most one array shared
