@@ -5,7 +5,8 @@ few array operations per iteration, whatever the number of pairs.
 
 Frame k maps its pixels to the plane by ``A_k (I + D_k) N_k``: ``N_k`` normalises its pixels (centre 0,
 half-size 1), ``A_k`` is the starting homography in those units (fixed) and ``D_k`` (eight parameters, its
-[2, 2] entry held at 0) is what the adjustment moves. The root frame has no ``D``: it defines the plane.
+[2, 2] entry held at 0) is what the adjustment moves. A held root frame has no ``D``: it defines the plane.
+A prior (``shape_weight``) may hold each free frame's pixels square at its centre (:func:`aspect_shear`).
 """
 
 from __future__ import annotations
