@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from workers import pipeline
+from workers.workspace import atomic_path
 
 _stage_module = pipeline.stage_module
 
@@ -45,9 +46,8 @@ def _fault(kind: str, stage: str, ws: Any) -> None:
     hold = folder / f"hold-{kind}{stage}"
     if hold.exists():
         marker = f"held-{kind}{job}-{stage}" + (f"-{os.getpid()}" if kind else "")
-        scratch = folder / f".{marker}.tmp"
-        scratch.write_text(str(os.getpid()))
-        scratch.rename(folder / marker)  # whole when it appears: a test reads the pid as soon as it sees the name
+        with atomic_path(folder / marker) as tmp:  # whole when it appears: a test reads the pid once it sees it
+            tmp.write_text(str(os.getpid()))
         while hold.exists():
             time.sleep(0.05)
 

@@ -44,10 +44,10 @@ def _strip(seed: int) -> tuple[list[np.ndarray], dict[tuple[int, int], TiePoints
     return truth, ties, chain_homographies(ROOT, parent, pairwise)
 
 
-def _corner_errors(homs: dict[int, np.ndarray], truth: list[np.ndarray]) -> np.ndarray:
+def corner_errors(homs: dict[int, np.ndarray], truth: list[np.ndarray], size: tuple[int, int] = SIZE) -> np.ndarray:
     """Every frame corner's distance (px) from the truth after the one similarity that fits them best."""
-    found = np.concatenate([apply_homography(homs[k], frame_corners(*SIZE)) for k in sorted(homs)])
-    true = np.concatenate([apply_homography(truth[k], frame_corners(*SIZE)) for k in sorted(homs)])
+    found = np.concatenate([apply_homography(homs[k], frame_corners(*size)) for k in sorted(homs)])
+    true = np.concatenate([apply_homography(truth[k], frame_corners(*size)) for k in sorted(homs)])
     return np.linalg.norm(apply_homography(fit_similarity(found, true), found) - true, axis=1)
 
 
@@ -56,7 +56,7 @@ def test_a_levelled_strip_keeps_its_shape() -> None:
         truth, ties, start = _strip(seed)
         sizes = dict.fromkeys(start, SIZE)
         adjusted = refine_homographies(start, ties, ROOT, sizes, perspective_damping=0.0)
-        tilted, levelled = _corner_errors(adjusted, truth), _corner_errors(level_plane(adjusted, sizes), truth)
+        tilted, levelled = corner_errors(adjusted, truth), corner_errors(level_plane(adjusted, sizes), truth)
         # the root frame's tilt fans the strip out (its corners tens of px off); levelled, it is the truth's
         assert tilted.max() > 5.0, (seed, tilted.max())
         assert levelled.max() < 1.0, (seed, levelled.max())
