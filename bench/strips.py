@@ -129,7 +129,8 @@ def peak_by_stage(samples: list[tuple[float, float]], stage_seconds: dict[str, f
 
 
 def truth_errors(strip: Any, job: Path) -> dict[str, float]:
-    """Corner errors (ground px) after one similarity, and frame centres' absolute errors (m)."""
+    """Corner errors (ground px) after one similarity; frame centres' and corners' absolute errors (m), and the
+    corners' standard errors the adjustment predicted (``corner_sigma_*``, m: its worst corner per frame)."""
     from workers.algorithms.geometry import fit_similarity
     from workers.algorithms.mosaic import apply_homography, frame_corners
     from workers.workspace import JobWorkspace
@@ -151,6 +152,15 @@ def truth_errors(strip: Any, job: Path) -> dict[str, float]:
         utm = apply_homography(geo.plane_to_map, np.array(centres))
         absolute = np.linalg.norm(utm - np.array(true_centres), axis=1)
         out.update(centre_abs_max_m=float(absolute.max()), centre_abs_rms_m=float(np.sqrt(np.mean(absolute**2))))
+        misses = np.linalg.norm(
+            apply_homography(geo.plane_to_map, p) - apply_homography(strip.texture_to_utm, t), axis=1
+        )
+        out.update(corner_abs_max_m=float(misses.max()), corner_abs_rms_m=float(np.sqrt(np.mean(misses**2))))
+        if align.corner_sigma_px:
+            metres = np.sqrt(abs(np.linalg.det(geo.plane_to_map[:2, :2]))) * np.array(
+                list(align.corner_sigma_px.values())
+            )
+            out.update(corner_sigma_max_m=float(metres.max()), corner_sigma_rms_m=float(np.sqrt(np.mean(metres**2))))
     return out
 
 

@@ -78,6 +78,7 @@ function colourings(mode) {
   return [
     { key: "rms_px", label: mode === "ortho" ? "Reprojection RMS" : "Tie-point RMS", unit: "px", digits: 2 },
     { key: "gps_residual_m", label: "GPS residual", unit: "m", digits: 2 },
+    ...(mode === "strip" ? [{ key: "corner_sigma_m", label: "Precision", unit: "m", digits: 2 }] : []),
     { key: "", label: "One colour" },
   ];
 }
@@ -212,6 +213,9 @@ function photoCard(props, photoUrl, mode) {
     factList([
       [mode === "ortho" ? "Reprojection RMS" : "Tie-point RMS", formatNumber(props.rms_px, 2, "px"), { "data-testid": "photo-rms" }],
       ["GPS residual", formatMetres(props.gps_residual_m), { "data-testid": "photo-gps-residual" }],
+      ...(typeof props.corner_sigma_m === "number"
+        ? [["Corners known to (1σ)", formatMetres(props.corner_sigma_m), { "data-testid": "photo-corner-sigma" }]]
+        : []),
       ["GPS fix (lat, lon)", lonlat(props.gps)],
       [mode === "ortho" ? "Camera (lat, lon)" : "Photo centre (lat, lon)", lonlat(props.camera)],
     ]),

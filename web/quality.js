@@ -85,12 +85,21 @@ function qualityBody(report) {
       ...(typeof report.gps_drift_m === "number"
         ? [["GPS drift along the route", formatMetres(report.gps_drift_m), { "data-testid": "gps-drift" }]]
         : []),
+      ...(report.corner_precision && typeof report.corner_precision.max_m === "number"
+        ? [["Frame corners known to (1σ)", precisionText(report.corner_precision), { "data-testid": "corner-precision" }]]
+        : []),
     ], { class: "facts wide", "data-testid": "quality-facts" }),
     reasons("Rejected frames", rejected, "frames-rejected", "No frame was rejected."),
   ];
   if (report.triangulation && typeof report.triangulation === "object") nodes.push(triangulationSection(report.triangulation));
   if (report.ortho_surface && typeof report.ortho_surface === "object") nodes.push(surfaceFacts(report.ortho_surface));
   return nodes;
+}
+
+/** "35.0 cm median, 72.0 cm at strip_000.tif": the adjustment's standard errors of the frames' corners. */
+function precisionText(p) {
+  const where = typeof p.worst_frame === "string" ? ` at ${p.worst_frame}` : "";
+  return `${formatMetres(p.median_m)} median, ${formatMetres(p.max_m)}${where}`;
 }
 
 /** "0.42 px (1.31 px at full resolution)": the working-scale RMS and the one in the photos' pixels. */

@@ -176,6 +176,8 @@ class Alignment:
     mode: Literal["planar", "ortho"] = "planar"
     frame_sizes: dict[int, tuple[int, int]] = field(default_factory=dict)  # ortho: (width, height) as cut
     ground_z: float | None = None  # ortho: height of the ground plane, m
+    # strips with GPS: frame -> its least well known corner's standard error, plane px (alignment.corner_sigmas)
+    corner_sigma_px: dict[int, float] = field(default_factory=dict)
 
     def to_json(self) -> JsonDict:
         return {
@@ -189,6 +191,7 @@ class Alignment:
             "pairs": [p.to_json() for p in self.pair_residuals],
             "frame_sizes": {str(k): list(s) for k, s in sorted(self.frame_sizes.items())},
             "ground_z": self.ground_z,
+            "corner_sigma_px": {str(k): v for k, v in sorted(self.corner_sigma_px.items())},
         }
 
     @classmethod
@@ -204,6 +207,7 @@ class Alignment:
             mode=data.get("mode", "planar"),
             frame_sizes={int(k): (int(w), int(h)) for k, (w, h) in data.get("frame_sizes", {}).items()},
             ground_z=data.get("ground_z"),
+            corner_sigma_px={int(k): float(v) for k, v in data.get("corner_sigma_px", {}).items()},
         )
 
 

@@ -378,6 +378,9 @@ def _facts(report: dict[str, Any]) -> str:
         ),
         ("Mosaic size", f"{mosaic.get('width', '–')} × {mosaic.get('height', '–')} px"),
     ]
+    precision = report.get("corner_precision")
+    if isinstance(precision, dict):
+        rows.append(("Frame corners known to (1σ)", _precision(precision)))
     if isinstance(mosaic.get("seam_visibility"), int | float):
         rows.append(("Seam visibility (1 = invisible)", f"{mosaic['seam_visibility']:.2f}"))
     if isinstance(report.get("ortho_surface"), dict):
@@ -529,6 +532,17 @@ def _length(metres: Any) -> str:
     if not isinstance(metres, int | float) or not math.isfinite(metres):
         return "–"
     return f"{metres * 100:.1f} cm" if abs(metres) < 1 else f"{metres:.2f} m"
+
+
+def _precision(precision: dict[str, Any]) -> str:
+    """ "0.4 cm median, 0.9 cm at strip_000.tif (3.4 photo px)": the adjustment's corner standard errors."""
+    px = precision.get("max_photo_px")
+    in_px = f" ({px:.1f} photo px)" if isinstance(px, int | float) and math.isfinite(px) else ""
+    where = precision.get("worst_frame")
+    return (
+        f"{_length(precision.get('median_m'))} median, {_length(precision.get('max_m'))}"
+        f"{f' at {where}' if where else ''}{in_px}"
+    )
 
 
 def _rms(working: Any, original: Any) -> str:

@@ -248,8 +248,15 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
             "cell_m": 0.342,
             "height_range_m": [-3.78, 6.36],
         }
+        # a strip's field, here to check its rendering (and that a file name in it stays text)
+        precision = {"median_m": 0.35, "max_m": 1.24, "max_photo_px": 4.96, "worst_frame": "<img src=x>strip_000.tif"}
         report.update(
-            mode="ortho", triangulation=TRIANGULATION, warnings=[warning], ortho_surface=surface, gps_drift_m=0.42
+            mode="ortho",
+            triangulation=TRIANGULATION,
+            warnings=[warning],
+            ortho_surface=surface,
+            gps_drift_m=0.42,
+            corner_precision=precision,
         )
         del report["gps_residual_rms_m"]
         route.fulfill(json=report)
@@ -261,6 +268,8 @@ def test_quality_card_shows_triangulation(signed_in_page, live_service, planar_j
     expect(page.get_by_test_id("rms-reprojection")).to_have_text("0.61 px (1.22 px at full resolution)")
     expect(page.get_by_test_id("gps-residual-rms")).to_have_text("–")  # missing field
     expect(page.get_by_test_id("gps-drift")).to_have_text("42.0 cm")
+    expect(page.get_by_test_id("corner-precision")).to_have_text("35.0 cm median, 1.24 m at <img src=x>strip_000.tif")
+    expect(page.get_by_test_id("corner-precision").locator("img")).to_have_count(0)
     expect(page.get_by_test_id("image-residual-row")).to_have_count(28)
     expect(page.get_by_test_id("image-residual-row").first.locator("td").nth(5)).to_have_text("–")  # GPS residual
     expect(page.get_by_test_id("quality-warning")).to_have_text(
@@ -491,4 +500,39 @@ def test_the_progress_card_says_the_time_left(signed_in_page, live_service, plan
     expect(page.get_by_test_id("stage-meta-detect_features")).to_have_text("3.4 s")
     expect(page.locator('[data-stage="match_features"] .stage-name')).to_have_text("Matching photo pairs")
     _screenshot(page, "progress_eta")
+    watch.assert_clean(live_service.url)
+
+
+def test_a_strips_footprints_are_coloured_by_how_well_their_corners_are_known(
+    signed_in_page, live_service, planar_job
+) -> None:
+    """A strip's footprints carry their corners' standard error (``corner_sigma_m``): spliced into the planar job's
+    footprints with the report's mode made "strip", the one mode that has them."""
+    from playwright.sync_api import expect
+
+    page, watch = signed_in_page
+
+    def as_strip(route: Any) -> None:
+        report = route.fetch().json()
+        route.fulfill(json={**report, "mode": "strip"})
+
+    def with_precision(route: Any) -> None:
+        collection = route.fetch().json()
+        for i, feature in enumerate(collection["features"]):
+            feature["properties"]["corner_sigma_m"] = 0.2 + 0.3 * i
+        route.fulfill(json=collection)
+
+    page.route(re.compile(r"/outputs/report\.json(?:\?|$)"), as_strip)
+    page.route(re.compile(r"/outputs/footprints\.geojson(?:\?|$)"), with_precision)
+    page.goto(f"{live_service.url}/#/jobs/{planar_job['id']}")
+    footprints = page.locator('[data-testid="map"] .leaflet-overlay-pane path')
+    expect(footprints).to_have_count(5)
+    page.get_by_test_id("colour-by").select_option("corner_sigma_m")
+    expect(page.get_by_test_id("footprint-legend")).to_contain_text("1.40 m")  # the worst frame's, at the red end
+    strokes = footprints.evaluate_all("(paths) => paths.map((p) => p.getAttribute('stroke'))")
+    assert len(set(strokes)) == 5, strokes
+    page.get_by_test_id("photo-pick").select_option("4")
+    expect(page.get_by_test_id("photo-corner-sigma")).to_have_text("1.40 m")
+    page.wait_for_load_state("networkidle")
+    _screenshot(page, "strip_corner_precision")
     watch.assert_clean(live_service.url)

@@ -128,6 +128,17 @@ def test_the_page_says_what_the_frames_were_projected_onto() -> None:
     assert "a surface gridded from 8,446 tie points" in page and why in page
 
 
+def test_the_page_says_how_well_a_strips_corners_are_known() -> None:
+    data = FigureData(50, 40, None, {}, np.zeros((4, 5), np.uint8))
+    precision = {"median_m": 0.35, "max_m": 1.24, "max_photo_px": 4.96, "worst_frame": "<b>strip_000</b>.tif"}
+    page = report_page({"mode": "strip", "corner_precision": precision}, data, figures(data), [])
+    assert (
+        "Frame corners known to (1σ)</dt><dd>35.0 cm median, 1.24 m at &lt;b&gt;strip_000&lt;/b&gt;.tif (5.0 photo px)"
+        in page
+    )
+    assert "<b>strip_000" not in page  # a file name is text
+
+
 @pytest.mark.realdata
 def test_the_brighton_strips_bend_is_named(tmp_path: Path) -> None:
     """The issue's case: on the real Brighton strip the planar model's GPS residuals are U-shaped."""

@@ -30,29 +30,31 @@ UTM_32N = Transformer.from_crs(32632, 4326, always_xy=True)
 
 
 def _strip(
-    seed: int, overlap: float = 0.5
+    seed: int, overlap: float = 0.5, count: int = FRAMES
 ) -> tuple[list[np.ndarray], dict[int, Frame], dict[tuple[int, int], TiePoints], dict]:
-    """Truth (frame -> ground px), frames with noisy GPS, tie points of consecutive frames, the chained start."""
+    """Truth (frame -> ground px), frames with noisy GPS, tie points of consecutive frames, the chained start
+    (from frame ``count // 2``)."""
     rng = np.random.default_rng(seed)
-    truth = _strip_homographies(rng, FRAMES, SIZE, overlap, 0.3, 0.005, 0.002)
+    truth = _strip_homographies(rng, count, SIZE, overlap, 0.3, 0.005, 0.002)
     ties, pairwise = {}, {}
-    for i in range(FRAMES - 1):
+    for i in range(count - 1):
         to_j = np.linalg.inv(truth[i + 1]) @ truth[i]
         # frame i's top rows are frame i + 1's bottom rows (north-bound): 400 points spread over them
         points = np.column_stack([rng.uniform(0, SIZE[0] - 1, 400), rng.uniform(0, (overlap - 0.02) * SIZE[1], 400)])
         seen = apply_homography(to_j, points) + rng.normal(0, 0.1, points.shape)
         ties[(i, i + 1)] = TiePoints(points, seen)
         pairwise[(i, i + 1)] = cv2.findHomography(points, seen, 0)[0]
-    parent = {k: k + 1 if k < ROOT else k - 1 for k in range(FRAMES) if k != ROOT}
+    root = count // 2
+    parent = {k: k + 1 if k < root else k - 1 for k in range(count) if k != root}
     frames = {}
-    for k in range(FRAMES):
+    for k in range(count):
         gx, gy = apply_homography(truth[k], [[(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2]])[0] + rng.normal(
             0, GPS_NOISE_M / GSD_M, 2
         )
         lon, lat = UTM_32N.transform(650_000 + GSD_M * gx, 5_200_000 - GSD_M * gy)
         gps = {"lat": lat, "lon": lon, "alt": 8000.0}
         frames[k] = Frame(k, f"strip_{k:03d}.tif", "", *SIZE, *SIZE, 1.0, gps=gps, gps_accuracy_m=1.0)
-    return truth, frames, ties, chain_homographies(ROOT, parent, pairwise)
+    return truth, frames, ties, chain_homographies(root, parent, pairwise)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

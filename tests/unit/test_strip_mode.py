@@ -29,6 +29,15 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     assert errors["corner_max_px"] < 1.0, errors
     # absolute: a similarity fitted to 6 fixes of 1 m puts centres within 0.82 m RMS (sigma sqrt(4 / 6))
     assert errors["centre_abs_rms_m"] < 2 * 0.82, errors
+    # the corners' precision: six fixes 330 m apart give the strip's heading and scale to 1 m / sqrt(sum d^2) each,
+    # which at a corner 9.4 km out is 9.7 m in all; the adjustment's own account is that, and the truth agrees
+    precision = report["corner_precision"]
+    centres = np.array([strip.frame_center_utm(k) for k in range(6)])
+    spread = np.sum((centres - centres.mean(axis=0)) ** 2)
+    lever = np.hypot(8000, 400) / 2 * strip.gsd_m
+    assert precision["max_m"] == pytest.approx(lever * np.sqrt(2 / spread), rel=0.25), precision
+    assert precision["worst_frame"] in {path.name for path in strip.paths}
+    assert errors["corner_abs_rms_m"] < 3 * precision["max_m"], (errors, precision)
     # brightness: each frame's gain undoes part of its exposure (Brown & Lowe's prior holds gains near 1: the
     # spread of the two together 0.56x the exposures' own here; gains of 1, as before the plan saw the strip's
     # overlaps, give 1x), and the CCD sub-images' steps are found with a mean error of 0.38 of their 3 % size:
@@ -65,3 +74,7 @@ def test_a_strip_whose_frames_share_no_ground_with_both_neighbours_is_warned_of(
     assert not _warnings(base) and not _warnings({**base, "triple_overlap_share": 0.5})
     (warning,) = _warnings({**base, "triple_overlap_share": 0.01})
     assert "1% of the frames" in warning and "55-60 % forward overlap" in warning
+    # with the adjustment's account of the corners, the warning says how far out they may be
+    precision = {"median_m": 0.35, "max_m": 0.72, "max_photo_px": 2.88, "worst_frame": "strip_000.tif"}
+    (warning,) = _warnings({**base, "triple_overlap_share": 0.01, "corner_precision": precision})
+    assert "corners known to 0.72 m, 2.9 photo px, 1 sigma, at strip_000.tif" in warning

@@ -11,6 +11,7 @@ from workers.algorithms.mosaic import (
     TiePoints,
     apply_homography,
     chain_homographies,
+    corner_sigmas,
     fit_plane_to_map,
     is_plausible,
     level_plane,
@@ -65,6 +66,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
                 PairResidual(i, j, float(np.sqrt(np.mean(r**2))), float(r.max()))
                 for (i, j), r in sorted(residuals.items())
             ],
+            corner_sigma_px=_corner_sigmas(cfg, frames, used, ties),
         )
     )
     progress(1.0, f"{len(used)} frames aligned")
@@ -147,6 +149,22 @@ def adjust_plane(
         else:
             refined = adjust(start, weighed, root, tie_sigma / square)
     return refined
+
+
+def _corner_sigmas(
+    cfg: MosaicConfig, frames: dict[int, Frame], homs: dict[int, np.ndarray], ties: dict[tuple[int, int], TiePoints]
+) -> dict[int, float]:
+    """A strip's frames' corner precision (:func:`corner_sigmas`) under the weights :func:`adjust_plane` gave
+    its last round; empty in the other modes (no square-pixel prior, so along a straight line of fixes the
+    datum's shape would be unfixed) or without enough GPS."""
+    square = cfg.strip_square_pixels if cfg.mode == "strip" else 0.0
+    if not square or len(homs) < 2:
+        return {}
+    tie_sigma = _tie_sigma_px(homs, ties)
+    positions = gps_positions(frames, homs, cfg.gps_sigma_m, cfg.min_gps_frames)
+    weighed = {k: (xy, sigma / tie_sigma) for k, (xy, sigma) in positions.items()}
+    sizes = {k: (frames[k].width, frames[k].height) for k in homs}
+    return corner_sigmas(homs, ties, sizes, weighed, tie_sigma / square, cfg.ransac_threshold_px)
 
 
 GPS_ROUNDS = 2  # adjustments with GPS inside, each after refitting the GPS similarity to the plane

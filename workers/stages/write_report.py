@@ -91,13 +91,15 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     if cfg.mode == "strip":
         sizes = {k: (frames[k].width, frames[k].height) for k in homs}
         report["triple_overlap_share"] = triple_overlap_share(homs, sizes)
+        report["corner_precision"] = _corner_precision(frames, align, geo, photo_per_plane)
     report["warnings"] = _warnings(report)
     ws.save_report(report)
     progress(0.5, "report pictures")
     data = _figure_data(ws, cfg, frames, align, geo, to_out, report)
     ws.save_report_html(report_page(report, data, svgs := figures(data), _advice(report, data, cfg)), svgs)
     if geo.georeferenced:
-        ws.save_footprints(_footprint_collection(frames, footprints, _photo_figures(frames, data, geo)))
+        figures_ = _photo_figures(frames, data, geo, (report.get("corner_precision") or {}).get("frames_m", {}))
+        ws.save_footprints(_footprint_collection(frames, footprints, figures_))
         gcps = _gcp_collection(ws, cfg, frames, align, geo, to_out, report)
         if gcps is not None:
             ws.save_gcp_points(gcps)
@@ -106,6 +108,26 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
         ws.save_cutlines(_cutline_collection(frames, seams, geo))
     progress(1.0, "report")
     return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
+
+
+def _corner_precision(
+    frames: dict[int, Frame], align: Alignment, geo: Georef, photo_per_plane: float
+) -> dict[str, Any] | None:
+    """How well the adjustment knows the frames' corners (``align_frames``' standard errors, 1 sigma, the worst
+    corner of each frame) in metres and in the photos' px: the median frame's, and the worst frame's with its
+    name; None without them (no GPS) or without map coordinates."""
+    sigmas = {k: v for k, v in align.corner_sigma_px.items() if k in align.homographies}
+    if not sigmas or not geo.georeferenced:
+        return None
+    metres_per_px = float(np.sqrt(abs(np.linalg.det(geo.plane_to_map[:2, :2]))))
+    worst = max(sigmas, key=lambda k: sigmas[k])
+    return {
+        "median_m": float(np.median(list(sigmas.values()))) * metres_per_px,
+        "max_m": sigmas[worst] * metres_per_px,
+        "max_photo_px": sigmas[worst] * photo_per_plane,
+        "worst_frame": frames[worst].name,
+        "frames_m": {frames[k].name: round(v * metres_per_px, 4) for k, v in sorted(sigmas.items())},
+    }
 
 
 def _warnings(report: dict[str, Any]) -> list[str]:
@@ -119,10 +141,17 @@ def _warnings(report: dict[str, Any]) -> list[str]:
         out.insert(0, f"{len(rejected)} of {total} frames are not in the map: {', '.join(rejected)}")
     share = report.get("triple_overlap_share")  # strips only
     if share is not None and share < 0.5:
+        precision = report.get("corner_precision")
+        known = (
+            f" (corners known to {precision['max_m']:.2f} m, {precision['max_photo_px']:.1f} photo px, 1 sigma, "
+            f"at {precision['worst_frame']})"
+            if precision
+            else ""
+        )
         out.append(
             f"only {share:.0%} of the frames share ground with both neighbours: with 50 % forward overlap or less "
             "the scale is not carried from frame to frame and the frames' width rests on GPS and on their pixels "
-            "being square (a few px off at the strip's ends); fly with 55-60 % forward overlap"
+            f"being square{known}; fly with 55-60 % forward overlap"
         )
     return out
 
@@ -200,10 +229,13 @@ def _footprint_collection(
     return {"type": "FeatureCollection", "features": features}
 
 
-def _photo_figures(frames: dict[int, Frame], data: FigureData, geo: Georef) -> dict[int, dict[str, Any]]:
+def _photo_figures(
+    frames: dict[int, Frame], data: FigureData, geo: Georef, corner_sigma_m: dict[str, float]
+) -> dict[int, dict[str, Any]]:
     """Per frame, what the viewer colours and shows its footprint by: ``rms_px`` (tie-point RMS in planar mode,
     reprojection RMS in ortho mode, working-copy px), ``gps_residual_m``, ``camera`` (lon, lat of the camera
-    centre, or of the frame's centre in planar mode) and ``gps`` (lon, lat of its fix)."""
+    centre, or of the frame's centre in planar mode), ``gps`` (lon, lat of its fix) and, for a strip's frames,
+    ``corner_sigma_m`` (its corners' standard error, by name in ``corner_sigma_m``)."""
     per_photo = {name: (rms, gps) for name, rms, gps in data.per_photo}
     out: dict[int, dict[str, Any]] = {}
     for k, frame in frames.items():
@@ -216,6 +248,8 @@ def _photo_figures(frames: dict[int, Frame], data: FigureData, geo: Georef) -> d
             "camera": _to_crs(geo, camera[None, :])[0].round(8).tolist() if camera is not None else None,
             "gps": [fix["lon"], fix["lat"]] if fix.get("lon") is not None and fix.get("lat") is not None else None,
         }
+        if frame.name in corner_sigma_m:
+            out[k]["corner_sigma_m"] = corner_sigma_m[frame.name]
     return out
 
 

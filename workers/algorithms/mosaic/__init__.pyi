@@ -10,6 +10,9 @@ from .alignment import (
     chain_homographies as chain_homographies,
 )
 from .alignment import (
+    corner_sigmas as corner_sigmas,
+)
+from .alignment import (
     frame_corners as frame_corners,
 )
 from .alignment import (

@@ -8,7 +8,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.algorithms.mosaic.plane_adjustment import PlaneProblem, levenberg_marquardt
+from workers.algorithms.mosaic.plane_adjustment import (
+    PlaneProblem,
+    inverse_diagonal_blocks,
+    levenberg_marquardt,
+    point_derivative,
+)
 
 Pair = tuple[int, int]
 
@@ -131,10 +136,33 @@ def refine_homographies(
     -------
     frame -> refined (3, 3) homography, normalised so H[2, 2] = 1.
     """
+    built = _plane_problem(initial, ties, root, frame_sizes, perspective_damping, positions, shape_weight)
+    if built is None:
+        return dict(initial)
+    problem, frames, norms = built
+    number = {k: f for f, k in enumerate(frames)}
+    free = [k for k in frames if k != root]
+    x = levenberg_marquardt(problem.residuals, problem.normal_equations, np.zeros(8 * len(free)), loss_scale_px)
+    C = problem.corrections(x)
+    refined = {k: initial[k] @ np.linalg.inv(norms[k]) @ C[number[k]] @ norms[k] for k in initial}
+    return {k: H / H[2, 2] for k, H in refined.items()}
+
+
+def _plane_problem(
+    initial: dict[int, np.ndarray],
+    ties: dict[Pair, TiePoints],
+    root: int | None,
+    frame_sizes: dict[int, tuple[int, int]],
+    perspective_damping: float,
+    positions: dict[int, tuple[np.ndarray, float]] | None,
+    shape_weight: float,
+) -> tuple[PlaneProblem, list[int], dict[int, np.ndarray]] | None:
+    """:func:`refine_homographies`' observations as a :class:`PlaneProblem` at ``initial`` (parameters zero),
+    with the frames in problem order and their normalisers; None with no free frame or no tie point."""
     free = sorted(k for k in initial if k != root)
     obs = [(i, j, t) for (i, j), t in ties.items() if i in initial and j in initial and len(t.points_i)]
     if not free or not obs:
-        return dict(initial)
+        return None
     frames = sorted(initial)  # numbered 0..F-1 in the problem
     number = {k: f for f, k in enumerate(frames)}
     slot = np.array([free.index(k) if k != root else -1 for k in frames], np.int64)
@@ -162,10 +190,58 @@ def refine_homographies(
         perspective_damping=perspective_damping,
         shape_weight=shape_weight,
     )
-    x = levenberg_marquardt(problem.residuals, problem.normal_equations, np.zeros(8 * len(free)), loss_scale_px)
-    C = problem.corrections(x)
-    refined = {k: initial[k] @ np.linalg.inv(norms[k]) @ C[number[k]] @ norms[k] for k in initial}
-    return {k: H / H[2, 2] for k, H in refined.items()}
+    return problem, frames, norms
+
+
+def corner_sigmas(
+    homographies: dict[int, np.ndarray],
+    ties: dict[Pair, TiePoints],
+    frame_sizes: dict[int, tuple[int, int]],
+    positions: dict[int, tuple[np.ndarray, float]],
+    shape_weight: float,
+    loss_scale_px: float = 2.0,
+) -> dict[int, float]:
+    """Frame -> the standard error (1 sigma, plane px) of its least well known corner: the precision a bundle
+    adjustment propagates (Förstner & Wrobel 2016, ch. 4), from :func:`refine_homographies`' normal equations at
+    its solution ``homographies`` with the same observations (tie points, ``positions``, the square-pixel prior
+    ``shape_weight``), scaled by their a posteriori variance of unit weight (so by the tie points' scatter as
+    found, not as assumed). No frame is held: the fixes are the datum, with :func:`level_plane`'s (the frames'
+    perspective rows average to zero, which nothing else fixes along a straight strip). A corner's error is its
+    2 x 2 covariance's trace, as an RMS distance.
+
+    Empty without GPS positions, or when the normal equations are singular (nothing fixes the datum).
+    """
+    built = _plane_problem(homographies, ties, None, frame_sizes, 0.0, positions, shape_weight) if positions else None
+    if built is None:
+        return {}
+    problem, frames, norms = built
+    zero = np.zeros(8 * len(frames))
+    normal, _ = problem.normal_equations(zero, loss_scale_px)
+    try:
+        blocks = inverse_diagonal_blocks(normal, _mean_perspective(problem.lift))  # (F, 8, 8), in frame order
+    except np.linalg.LinAlgError:
+        return {}
+    corners = np.concatenate([_normalised_points(norms[k], frame_corners(*frame_sizes[k])) for k in frames])
+    J = point_derivative(np.repeat(problem.lift, 4, axis=0), corners)  # (4F, 2, 8)
+    covariance = J @ np.repeat(blocks, 4, axis=0) @ J.transpose(0, 2, 1)
+    variance = problem.variance_factor(zero, loss_scale_px) * np.trace(covariance, axis1=1, axis2=2)
+    worst = variance.reshape(-1, 4).max(axis=1)
+    if not np.all(np.isfinite(worst)) or np.any(worst < 0):
+        return {}
+    return {k: float(np.sqrt(v)) for k, v in zip(frames, worst, strict=True)}
+
+
+def _mean_perspective(lift: np.ndarray) -> np.ndarray:
+    """(2, 8F) the derivative of the frames' summed perspective rows ``M[2, :2] / M[2, 2]`` (normalised
+    coordinates, :func:`level_plane`'s) by the parameters of ``M = A (I + D)`` at ``D = 0``: parameter m of D
+    adds ``A[2, ROW[m]]`` to ``M[2, COL[m]]``."""
+    row, col = np.array([0, 0, 0, 1, 1, 1, 2, 2]), np.array([0, 1, 2, 0, 1, 2, 0, 1])
+    gain = lift[:, 2, row]  # (F, 8): what parameter m adds to M[2, COL[m]]
+    out = np.zeros((2, len(lift), 8))
+    for j in (0, 1):
+        p = lift[:, 2, j] / lift[:, 2, 2]
+        out[j] = (gain * (col == j) - p[:, None] * gain * (col == 2)) / lift[:, 2, 2, None]
+    return out.reshape(2, -1)
 
 
 LEVEL_ITERATIONS = 8  # Newton steps of the levelling: quadratic convergence, 3-4 reach 1e-12 on strips

@@ -95,6 +95,16 @@ class PlaneProblem:
             [miss.ravel(), gps.ravel(), self.perspective_damping * params[self.perspective()], self._shape(M).ravel()]
         )
 
+    def variance_factor(self, params: np.ndarray, f_scale: float) -> float:
+        """The a posteriori variance of unit weight at ``params`` (a solution): the IRLS-weighted squared residuals
+        over the redundancy, observations less unknowns (the damping counts only when it weighs). 1 when every
+        observation's weight was one over its true variance; the parameters' covariance is it times
+        ``normal^-1``. NaN with no redundancy."""
+        r = self.residuals(params)
+        observations = len(r) - (0 if self.perspective_damping else 2 * self.n_free)
+        redundancy = observations - 8 * self.n_free
+        return float(np.sum(_irls(r, f_scale) * r**2) / redundancy) if redundancy > 0 else float("nan")
+
     def free_frames(self) -> np.ndarray:
         """(n_free,) int: the free frames in slot order."""
         return np.argsort(self.slot)[len(self.slot) - self.n_free :]
@@ -261,6 +271,120 @@ def _solve(normal: Normal, damping: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     from scipy.sparse.linalg import spsolve
 
     return np.asarray(spsolve((normal + diags(damping)).tocsc(), rhs))
+
+
+def inverse_diagonal_blocks(
+    normal: Normal, constraints: np.ndarray | None = None, size: int = 8, columns: int = 512
+) -> np.ndarray:
+    """(n / size, size, size) the diagonal blocks of ``normal^-1`` (a parameter covariance, up to its residuals'
+    variance); with ``constraints`` (c, n) ``C``, of the covariance with ``C x = 0`` held exactly (a datum): the
+    top-left block of the bordered matrix ``[[N, C^T], [C, 0]]``'s inverse (Förstner & Wrobel 2016, sec. 4.5).
+
+    A dense matrix: LAPACK's inverse. A sparse one whose blocks make a band once reordered (reverse
+    Cuthill-McKee over the blocks: a strip's frames tie only to their next few): :func:`_banded_inverse_blocks`,
+    time linear in n. Otherwise SuperLU, solved against ``columns`` unit vectors at a time with only the blocks
+    kept (a 1600-frame route's whole inverse would be 1.3 GB). Raises ``np.linalg.LinAlgError`` when the matrix
+    is singular."""
+    n = normal.shape[0]
+    c = 0 if constraints is None else len(constraints)
+    if isinstance(normal, np.ndarray):
+        bordered = normal
+        if c:
+            bordered = np.block([[normal, constraints.T], [constraints, np.zeros((c, c))]])  # type: ignore[union-attr]
+        index = np.arange(n).reshape(-1, size)
+        return np.linalg.inv(bordered)[index[:, :, None], index[:, None, :]]
+    banded = _banded_inverse_blocks(normal, constraints, size)
+    if banded is not None:
+        return banded
+    from scipy.sparse import bmat, csr_matrix  # see Normal
+    from scipy.sparse.linalg import splu
+
+    if c:
+        border = csr_matrix(constraints)
+        normal = bmat([[normal, border.T], [border, None]])
+    try:
+        factor = splu(normal.tocsc())
+    except RuntimeError as error:  # SuperLU: "Factor is exactly singular"
+        raise np.linalg.LinAlgError(str(error)) from error
+    blocks = np.empty((n // size, size, size))
+    step = max(columns // size, 1) * size
+    for start in range(0, n, step):
+        stop = min(start + step, n)
+        unit = np.zeros((n + c, stop - start))
+        unit[np.arange(start, stop), np.arange(stop - start)] = 1.0
+        solved = factor.solve(unit)  # (n + c, stop - start): columns start..stop of the inverse
+        for b in range(start // size, stop // size):
+            blocks[b] = solved[b * size : (b + 1) * size, b * size - start : (b + 1) * size - start]
+    return blocks
+
+
+MAX_BAND = 256  # widest band (scalar rows) :func:`_banded_inverse_blocks` takes on: its window is this squared
+
+
+def _banded_inverse_blocks(normal: csr_matrix, constraints: np.ndarray | None, size: int) -> np.ndarray | None:
+    """:func:`inverse_diagonal_blocks` of a sparse positive definite ``normal`` by its banded Cholesky factor
+    ``N = U^T U`` (LAPACK) and Takahashi's recurrence for the inverse's entries within the band (Takahashi, Fagan &
+    Chin 1973; Erisman & Tinney 1975): row i of ``U Z = U^-T`` gives ``Z_ij = (delta_ij / u_ii - sum_k u_ik Z_kj)
+    / u_ii``, bottom row first, each row needing only the window of Z the band spans. A datum ``C x = 0``
+    subtracts ``Y M^-1 Y^T`` (``Y = N^-1 C^T``, ``M = C Y``). None when the band is wider than ``MAX_BAND``
+    or the matrix is not positive definite without the datum (the bordered system then takes it)."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    n = normal.shape[0]
+    coo = coo_matrix(normal)
+    coo.sum_duplicates()
+    pattern = coo_matrix((np.ones(coo.nnz), (coo.row // size, coo.col // size)), shape=(n // size, n // size))
+    order = reverse_cuthill_mckee(pattern.tocsr(), symmetric_mode=True)  # blocks, new -> old
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    row = rank[coo.row // size] * size + coo.row % size
+    col = rank[coo.col // size] * size + coo.col % size
+    width = int(np.abs(row - col).max(initial=0))
+    if width > MAX_BAND:
+        return None
+    upper = row <= col
+    band = np.zeros((width + 1, n))  # LAPACK's upper band storage: band[width + i - j, j] = N[i, j]
+    band[width + row[upper] - col[upper], col[upper]] = coo.data[upper]
+    try:
+        factor = cholesky_banded(band, lower=False)
+    except np.linalg.LinAlgError:
+        return None
+    m = max(width, size)
+    window = np.zeros((m, m))  # Z over rows/columns i + 1 .. i + m (zero past the end)
+    lifted = np.zeros((m, n + m))  # U[i, i + d] at lifted[d - 1, i]: the factor's rows as columns
+    for d in range(1, width + 1):
+        lifted[d - 1, : n - d] = factor[width - d, d:]
+    diagonal = factor[width]
+    blocks = np.empty((n // size, size, size))
+    for i in range(n - 1, -1, -1):
+        u = lifted[:, i]
+        z = -(window @ u) / diagonal[i]
+        shifted = np.empty_like(window)
+        shifted[0, 0] = (1.0 / diagonal[i] - u @ z) / diagonal[i]
+        shifted[0, 1:] = shifted[1:, 0] = z[:-1]
+        shifted[1:, 1:] = window[:-1, :-1]
+        window = shifted
+        if i % size == 0:
+            blocks[i // size] = window[:size, :size]
+    if constraints is not None and len(constraints):
+        flat = (order[:, None] * size + np.arange(size)).ravel()  # new scalar index -> old
+        reordered = constraints[:, flat]
+        Y = cho_solve_banded((factor, False), reordered.T)  # (n, c)
+        M_inv = np.linalg.inv(reordered @ Y)
+        Y_blocks = Y.reshape(-1, size, len(constraints))
+        blocks -= Y_blocks @ M_inv @ Y_blocks.transpose(0, 2, 1)
+    out = np.empty_like(blocks)
+    out[order] = blocks
+    return out
+
+
+def point_derivative(M: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(n, 2, 8) derivative of the plane points of normalised points ``q`` (n, 3) through ``M (I + D)`` ((n, 3, 3)
+    ``M``) by the eight parameters of ``D``, at ``D = 0``."""
+    u, h = _project(M, q)
+    return _derivative(_lifted(M, q), u, h)
 
 
 def aspect_shear(M: np.ndarray) -> np.ndarray:
