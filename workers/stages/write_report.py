@@ -98,8 +98,8 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     data = _figure_data(ws, cfg, frames, align, geo, to_out, report)
     ws.save_report_html(report_page(report, data, svgs := figures(data), _advice(report, data, cfg)), svgs)
     if geo.georeferenced:
-        figures_ = _photo_figures(frames, data, geo, (report.get("corner_precision") or {}).get("frames_m", {}))
-        ws.save_footprints(_footprint_collection(frames, footprints, figures_))
+        per_photo = _photo_figures(frames, data, geo, (report.get("corner_precision") or {}).get("frames_m", {}))
+        ws.save_footprints(_footprint_collection(frames, footprints, per_photo))
         gcps = _gcp_collection(ws, cfg, frames, align, geo, to_out, report)
         if gcps is not None:
             ws.save_gcp_points(gcps)
