@@ -77,6 +77,34 @@ def test_no_fixes_no_precision() -> None:
     assert corner_sigmas(truth, ties, dict.fromkeys(truth, SIZE), {}, TIE_NOISE_PX / SQUARE) == {}
 
 
+def test_a_frame_no_tie_point_joins_is_left_out() -> None:
+    # its neighbour was rejected: GPS and the prior alone leave 4 of its 8 parameters unobserved, and an inverse
+    # taken anyway gave it 3e11 px and moved the others'
+    homographies, _, ties, _ = _strip(6, count=12)
+    truth = {k: H / H[2, 2] for k, H in enumerate(homographies)}
+    centres = np.array([apply_homography(truth[k], [[(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2]])[0] for k in truth])
+    fixes = {k: (c, GPS_NOISE_PX / TIE_NOISE_PX) for k, c in enumerate(centres)}
+    sizes = dict.fromkeys(truth, SIZE)
+    whole = corner_sigmas(truth, ties, sizes, fixes, TIE_NOISE_PX / SQUARE)
+    cut = {pair: t for pair, t in ties.items() if pair != (0, 1)}
+    left = corner_sigmas(truth, cut, sizes, fixes, TIE_NOISE_PX / SQUARE)
+    assert sorted(left) == list(range(1, 12))
+    assert max(left.values()) < 3 * max(whole.values()), (left, whole)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_an_unobserved_parameter_is_refused(sparse: bool) -> None:
+    # 15 observations of 16 parameters: one combination of them is unobserved (the factor may exist in
+    # floating point; its inverse would be noise)
+    A = np.random.default_rng(1).normal(size=(16, 15))
+    normal = A @ A.T
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse_diagonal_blocks(csr_matrix(normal) if sparse else normal)
+    normal[3, 3] = np.nan
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse_diagonal_blocks(csr_matrix(normal) if sparse else normal)
+
+
 @pytest.mark.parametrize("constrained", [False, True])
 @pytest.mark.parametrize("max_band", [plane_adjustment.MAX_BAND, 0])  # the banded recurrence, then SuperLU's
 def test_diagonal_blocks_of_the_inverse_sparse_as_dense(

@@ -91,7 +91,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     if cfg.mode == "strip":
         sizes = {k: (frames[k].width, frames[k].height) for k in homs}
         report["triple_overlap_share"] = triple_overlap_share(homs, sizes)
-        report["corner_precision"] = _corner_precision(frames, align, geo, photo_per_plane)
+        report["corner_precision"] = _corner_precision(frames, align, geo)
     report["warnings"] = _warnings(report)
     ws.save_report(report)
     progress(0.5, "report pictures")
@@ -110,22 +110,22 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     return {"frames_used": len(report["frames_used"]), "frames_rejected": len(report["frames_rejected"])}
 
 
-def _corner_precision(
-    frames: dict[int, Frame], align: Alignment, geo: Georef, photo_per_plane: float
-) -> dict[str, Any] | None:
+def _corner_precision(frames: dict[int, Frame], align: Alignment, geo: Georef) -> dict[str, Any] | None:
     """How well the adjustment knows the frames' corners (``align_frames``' standard errors, 1 sigma, the worst
     corner of each frame) in metres and in the photos' px: the median frame's, and the worst frame's with its
-    name; None without them (no GPS) or without map coordinates."""
+    name (its px its own); None without them (no GPS) or without map coordinates."""
     sigmas = {k: v for k, v in align.corner_sigma_px.items() if k in align.homographies}
     if not sigmas or not geo.georeferenced:
         return None
     metres_per_px = float(np.sqrt(abs(np.linalg.det(geo.plane_to_map[:2, :2]))))
     worst = max(sigmas, key=lambda k: sigmas[k])
+    f = frames[worst]
+    photo_per_plane = photo_px_per_plane_px(align.homographies[worst], f.width, f.height, f.orig_width, f.orig_height)
     return {
         "median_m": float(np.median(list(sigmas.values()))) * metres_per_px,
         "max_m": sigmas[worst] * metres_per_px,
         "max_photo_px": sigmas[worst] * photo_per_plane,
-        "worst_frame": frames[worst].name,
+        "worst_frame": f.name,
         "frames_m": {frames[k].name: round(v * metres_per_px, 4) for k, v in sorted(sigmas.items())},
     }
 

@@ -205,30 +205,58 @@ def corner_sigmas(
     adjustment propagates (Förstner & Wrobel 2016, ch. 4), from :func:`refine_homographies`' normal equations at
     its solution ``homographies`` with the same observations (tie points, ``positions``, the square-pixel prior
     ``shape_weight``), scaled by their a posteriori variance of unit weight (so by the tie points' scatter as
-    found, not as assumed). No frame is held: the fixes are the datum, with :func:`level_plane`'s (the frames'
-    perspective rows average to zero, which nothing else fixes along a straight strip). A corner's error is its
-    2 x 2 covariance's trace, as an RMS distance.
+    found, not as assumed). A corner's error is its 2 x 2 covariance's trace, as an RMS distance.
 
-    Empty without GPS positions, or when the normal equations are singular (nothing fixes the datum).
+    No frame is held: the fixes are the datum, with :func:`level_plane`'s condition held exactly, as the adjustment
+    holds it (its last round keeps the levelled root): the frames' perspective rows average to zero. Along a
+    straight strip the fixes and the prior tell that tilt only weakly (the unit test's strip: 7.4 px without the
+    condition, 2.0 with it), so a flight whose attitude does not average out is off by more than this says.
+
+    Only the frames tie points join to the largest group of frames are given one (a frame whose neighbours were
+    rejected is left out); empty without GPS positions, or when the normal equations are singular or not
+    finite.
     """
-    built = _plane_problem(homographies, ties, None, frame_sizes, 0.0, positions, shape_weight) if positions else None
+    joined = _largest_group(homographies, ties)
+    kept = {k: homographies[k] for k in joined}
+    fixes = {k: p for k, p in positions.items() if k in joined}
+    built = _plane_problem(kept, ties, None, frame_sizes, 0.0, fixes, shape_weight) if fixes else None
     if built is None:
         return {}
     problem, frames, norms = built
     zero = np.zeros(8 * len(frames))
     normal, _ = problem.normal_equations(zero, loss_scale_px)
+    datum = _mean_perspective(problem.lift)
     try:
-        blocks = inverse_diagonal_blocks(normal, _mean_perspective(problem.lift))  # (F, 8, 8), in frame order
+        blocks = inverse_diagonal_blocks(normal, datum)  # (F, 8, 8), in frame order
     except np.linalg.LinAlgError:
         return {}
     corners = np.concatenate([_normalised_points(norms[k], frame_corners(*frame_sizes[k])) for k in frames])
     J = point_derivative(np.repeat(problem.lift, 4, axis=0), corners)  # (4F, 2, 8)
     covariance = J @ np.repeat(blocks, 4, axis=0) @ J.transpose(0, 2, 1)
-    variance = problem.variance_factor(zero, loss_scale_px) * np.trace(covariance, axis1=1, axis2=2)
-    worst = variance.reshape(-1, 4).max(axis=1)
+    factor = problem.variance_factor(zero, loss_scale_px, conditions=len(datum))
+    worst = (factor * np.trace(covariance, axis1=1, axis2=2)).reshape(-1, 4).max(axis=1)
     if not np.all(np.isfinite(worst)) or np.any(worst < 0):
         return {}
     return {k: float(np.sqrt(v)) for k, v in zip(frames, worst, strict=True)}
+
+
+def _largest_group(homographies: dict[int, np.ndarray], ties: dict[Pair, TiePoints]) -> set[int]:
+    """The largest set of frames of ``homographies`` that tie points join (union-find over the pairs)."""
+    parent = {k: k for k in homographies}
+
+    def find(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for (i, j), t in ties.items():
+        if i in parent and j in parent and len(t.points_i):
+            parent[find(i)] = find(j)
+    groups: dict[int, set[int]] = {}
+    for k in homographies:
+        groups.setdefault(find(k), set()).add(k)
+    return max(groups.values(), key=len, default=set())
 
 
 def _mean_perspective(lift: np.ndarray) -> np.ndarray:

@@ -95,14 +95,14 @@ class PlaneProblem:
             [miss.ravel(), gps.ravel(), self.perspective_damping * params[self.perspective()], self._shape(M).ravel()]
         )
 
-    def variance_factor(self, params: np.ndarray, f_scale: float) -> float:
+    def variance_factor(self, params: np.ndarray, f_scale: float, conditions: int = 0) -> float:
         """The a posteriori variance of unit weight at ``params`` (a solution): the IRLS-weighted squared residuals
-        over the redundancy, observations less unknowns (the damping counts only when it weighs). 1 when every
-        observation's weight was one over its true variance; the parameters' covariance is it times
-        ``normal^-1``. NaN with no redundancy."""
+        over the redundancy, observations less unknowns plus ``conditions`` (a datum's constraints; the damping
+        counts only when it weighs). 1 when every observation's weight was one over its true variance; the
+        parameters' covariance is it times ``normal^-1``. NaN with no redundancy."""
         r = self.residuals(params)
         observations = len(r) - (0 if self.perspective_damping else 2 * self.n_free)
-        redundancy = observations - 8 * self.n_free
+        redundancy = observations - 8 * self.n_free + conditions
         return float(np.sum(_irls(r, f_scale) * r**2) / redundancy) if redundancy > 0 else float("nan")
 
     def free_frames(self) -> np.ndarray:
@@ -278,21 +278,30 @@ def inverse_diagonal_blocks(
 ) -> np.ndarray:
     """(n / size, size, size) the diagonal blocks of ``normal^-1`` (a parameter covariance, up to its residuals'
     variance); with ``constraints`` (c, n) ``C``, of the covariance with ``C x = 0`` held exactly (a datum): the
-    top-left block of the bordered matrix ``[[N, C^T], [C, 0]]``'s inverse (Förstner & Wrobel 2016, sec. 4.5).
+    top-left block of the bordered matrix ``[[N, C^T], [C, 0]]``'s inverse, ``N^-1 - Y M^-1 Y^T`` with
+    ``Y = N^-1 C^T``, ``M = C Y`` (Förstner & Wrobel 2016, sec. 4.5).
 
-    A dense matrix: LAPACK's inverse. A sparse one whose blocks make a band once reordered (reverse
-    Cuthill-McKee over the blocks: a strip's frames tie only to their next few): :func:`_banded_inverse_blocks`,
-    time linear in n. Otherwise SuperLU, solved against ``columns`` unit vectors at a time with only the blocks
-    kept (a 1600-frame route's whole inverse would be 1.3 GB). Raises ``np.linalg.LinAlgError`` when the matrix
-    is singular."""
+    A dense matrix: LAPACK's Cholesky factor (the positive-definiteness check) and inverse. A sparse one whose
+    blocks make a band once reordered (reverse Cuthill-McKee over the blocks: a strip's frames tie only to their
+    next few): :func:`_banded_inverse_blocks`, time linear in n. Otherwise SuperLU on the bordered matrix, solved
+    against ``columns`` unit vectors at a time with only the blocks kept (a 1600-frame route's whole inverse would
+    be 1.3 GB). Raises ``np.linalg.LinAlgError`` when ``normal`` is not finite or, but for SuperLU's, not
+    positive definite to ``MIN_PIVOT`` (a parameter nothing observes)."""
     n = normal.shape[0]
     c = 0 if constraints is None else len(constraints)
+    values = normal if isinstance(normal, np.ndarray) else normal.data
+    if not np.all(np.isfinite(values)):
+        raise np.linalg.LinAlgError("the normal matrix is not finite")
     if isinstance(normal, np.ndarray):
-        bordered = normal
-        if c:
-            bordered = np.block([[normal, constraints.T], [constraints, np.zeros((c, c))]])  # type: ignore[union-attr]
+        _check_pivots(np.linalg.cholesky(normal).diagonal() ** 2, normal.diagonal())
+        inverse = np.linalg.inv(normal)
         index = np.arange(n).reshape(-1, size)
-        return np.linalg.inv(bordered)[index[:, :, None], index[:, None, :]]
+        blocks = inverse[index[:, :, None], index[:, None, :]]
+        if c:
+            Y = inverse @ constraints.T  # type: ignore[union-attr]
+            Y_blocks = Y.reshape(-1, size, c)
+            blocks -= Y_blocks @ np.linalg.inv(constraints @ Y) @ Y_blocks.transpose(0, 2, 1)  # type: ignore[operator]
+        return blocks
     banded = _banded_inverse_blocks(normal, constraints, size)
     if banded is not None:
         return banded
@@ -318,6 +327,17 @@ def inverse_diagonal_blocks(
     return blocks
 
 
+MIN_PIVOT = 1e-12  # a Cholesky pivot below this share of its diagonal entry: a parameter nothing observes
+
+
+def _check_pivots(pivots: np.ndarray, diagonal: np.ndarray) -> None:
+    """Raise ``np.linalg.LinAlgError`` when a Cholesky pivot (``u_ii^2``) is below ``MIN_PIVOT`` of its matrix's
+    diagonal entry: the factor exists in floating point, the inverse would be noise (a frame no tie point
+    joins to the others: a 1e11 px standard error)."""
+    if np.any(pivots < MIN_PIVOT * np.maximum(diagonal, np.finfo(float).tiny)):
+        raise np.linalg.LinAlgError("the normal matrix is singular: a parameter is not observed")
+
+
 MAX_BAND = 256  # widest band (scalar rows) :func:`_banded_inverse_blocks` takes on: its window is this squared
 
 
@@ -327,7 +347,8 @@ def _banded_inverse_blocks(normal: csr_matrix, constraints: np.ndarray | None, s
     Chin 1973; Erisman & Tinney 1975): row i of ``U Z = U^-T`` gives ``Z_ij = (delta_ij / u_ii - sum_k u_ik Z_kj)
     / u_ii``, bottom row first, each row needing only the window of Z the band spans. A datum ``C x = 0``
     subtracts ``Y M^-1 Y^T`` (``Y = N^-1 C^T``, ``M = C Y``). None when the band is wider than ``MAX_BAND``
-    or the matrix is not positive definite without the datum (the bordered system then takes it)."""
+    or the matrix is not positive definite without the datum (the bordered system then takes it); raises
+    ``np.linalg.LinAlgError`` when a pivot is below ``MIN_PIVOT``."""
     from scipy.linalg import cho_solve_banded, cholesky_banded
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import reverse_cuthill_mckee
@@ -351,6 +372,7 @@ def _banded_inverse_blocks(normal: csr_matrix, constraints: np.ndarray | None, s
         factor = cholesky_banded(band, lower=False)
     except np.linalg.LinAlgError:
         return None
+    _check_pivots(factor[width] ** 2, band[width])
     m = max(width, size)
     window = np.zeros((m, m))  # Z over rows/columns i + 1 .. i + m (zero past the end)
     lifted = np.zeros((m, n + m))  # U[i, i + d] at lifted[d - 1, i]: the factor's rows as columns
