@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from workers.algorithms.mosaic.plane_adjustment import (
+    PARAMETER_COL,
+    PARAMETER_ROW,
     PlaneProblem,
     inverse_diagonal_blocks,
     levenberg_marquardt,
@@ -263,7 +265,7 @@ def _mean_perspective(lift: np.ndarray) -> np.ndarray:
     """(2, 8F) the derivative of the frames' summed perspective rows ``M[2, :2] / M[2, 2]`` (normalised
     coordinates, :func:`level_plane`'s) by the parameters of ``M = A (I + D)`` at ``D = 0``: parameter m of D
     adds ``A[2, ROW[m]]`` to ``M[2, COL[m]]``."""
-    row, col = np.array([0, 0, 0, 1, 1, 1, 2, 2]), np.array([0, 1, 2, 0, 1, 2, 0, 1])
+    row, col = PARAMETER_ROW, PARAMETER_COL
     gain = lift[:, 2, row]  # (F, 8): what parameter m adds to M[2, COL[m]]
     out = np.zeros((2, len(lift), 8))
     for j in (0, 1):

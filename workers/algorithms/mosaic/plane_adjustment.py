@@ -24,6 +24,7 @@ if TYPE_CHECKING:
 # d(C q)/d(params): parameter m of D (row-major, D[2, 2] = 0) scales component ROW[m] of q by q[COL[m]]
 _ROW = np.array([0, 0, 0, 1, 1, 1, 2, 2])
 _COL = np.array([0, 1, 2, 0, 1, 2, 0, 1])
+PARAMETER_ROW, PARAMETER_COL = _ROW, _COL  # for the derivatives alignment.py takes of the same parameters
 DENSE_MAX_UNKNOWNS = 2400  # normal equations up to this size (300 frames) are solved densely, beyond sparsely
 
 # SciPy's sparse matrices only past DENSE_MAX_UNKNOWNS, imported there: SciPy's linear algebra adds ~50 MiB to a
