@@ -6,13 +6,14 @@ Run by hand from the repository root::
     .venv/bin/python bench/strip_geometry.py [--case 0.5 305 1 --case 0.6 370 2 ...] [--seeds 4]
         [--size 75000 1800] [--ties 400] [--tie-noise-px 0.1] [--gps-noise-m 1.0]
 
-A case is ``OVERLAP FRAMES GAP``: the strip generator's true homographies (``tests.strip_scenes``: each frame's
-rotation, scale and perspective drawn independently) at that forward overlap, tie points between every frame
-and the next ``GAP`` frames whose overlap is at least 10 % of a frame (``--ties`` spread over the overlap, with
-Gaussian noise), GPS fixes of the frame centres with Gaussian noise, then ``adjust_plane`` in strip mode as a
-job runs it. Printed per case and draw: every frame corner's error against the truth after one similarity (max
-and RMS, native px), and the share of that error's energy a per-frame scale about the frame's centre explains
-(the mode that is left when tie points fix each frame to its neighbours and the fixes fix the centres).
+A case is ``OVERLAP FRAMES GAP``, drawn by ``tests.strip_scenes.adjustment_inputs``: the strip generator's true
+homographies (each frame's rotation, scale and perspective drawn independently) at that forward overlap, tie
+points between every frame and the next ``GAP`` frames whose overlap is at least 10 % of a frame (``--ties``
+spread over the overlap, with Gaussian noise), GPS fixes of the frame centres with Gaussian noise, then
+``adjust_plane`` in strip mode as a job runs it. Printed per case and draw: every frame corner's error against
+the truth after one similarity (max and RMS, native px), and the share of that error's energy a per-frame scale
+about the frame's centre explains (the mode that is left when tie points fix each frame to its neighbours and
+the fixes fix the centres).
 """
 
 from __future__ import annotations
@@ -22,52 +23,18 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
-from pyproj import Transformer
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run as a script from a checkout, installed or not
 
-from tests.strip_scenes import _strip_homographies  # noqa: E402
+from tests.strip_scenes import adjustment_inputs  # noqa: E402
 from workers.algorithms.geometry import fit_similarity  # noqa: E402
-from workers.algorithms.mosaic import TiePoints, apply_homography, chain_homographies, frame_corners  # noqa: E402
+from workers.algorithms.mosaic import apply_homography, frame_corners  # noqa: E402
 from workers.config import MosaicConfig  # noqa: E402
-from workers.records import Frame  # noqa: E402
 from workers.stages.align_frames import adjust_plane  # noqa: E402
 
 GSD_M = 0.25  # the camera's ground pixel, m (tests.strip_scenes.make_strip's default)
-MIN_OVERLAP = 0.1  # frames further apart than this share of a frame are not tied
-TO_WGS84 = Transformer.from_crs(32632, 4326, always_xy=True)
-
-
-def draw(
-    rng: np.random.Generator, args: argparse.Namespace, overlap: float, count: int, gap: int
-) -> tuple[list[np.ndarray], dict[int, Frame], dict[tuple[int, int], TiePoints], dict[int, np.ndarray]]:
-    """Truth, frames with noisy fixes, tie points, and the start chained from the middle frame."""
-    w, h = args.size
-    truth = _strip_homographies(rng, count, (w, h), overlap, 0.3, 0.005, 0.002)
-    ties, pairwise = {}, {}
-    for i in range(count):
-        for j in range(i + 1, min(count, i + gap + 1)):
-            shared = 1 - (j - i) * (1 - overlap)  # frame i's top rows are frame j's bottom rows (north-bound)
-            if shared < MIN_OVERLAP:
-                continue
-            points = np.column_stack([rng.uniform(0, w - 1, args.ties), rng.uniform(0, (shared - 0.02) * h, args.ties)])
-            seen = apply_homography(np.linalg.inv(truth[j]) @ truth[i], points)
-            ties[(i, j)] = TiePoints(points, seen + rng.normal(0, args.tie_noise_px, points.shape))
-            if j == i + 1:
-                pairwise[(i, j)] = cv2.findHomography(ties[(i, j)].points_i, ties[(i, j)].points_j, 0)[0]
-    frames = {}
-    centre = [[(w - 1) / 2, (h - 1) / 2]]
-    for k in range(count):
-        gx, gy = apply_homography(truth[k], centre)[0] + rng.normal(0, args.gps_noise_m / GSD_M, 2)
-        lon, lat = TO_WGS84.transform(650_000 + GSD_M * gx, 5_200_000 - GSD_M * gy)
-        gps = {"lat": lat, "lon": lon, "alt": 8000.0}
-        frames[k] = Frame(k, f"strip_{k:05d}.tif", "", w, h, w, h, 1.0, gps=gps, gps_accuracy_m=args.gps_noise_m)
-    root = count // 2
-    parent = {k: k + 1 if k < root else k - 1 for k in range(count) if k != root}
-    return truth, frames, ties, chain_homographies(root, parent, pairwise)
 
 
 def corner_errors(
@@ -106,7 +73,17 @@ def main(argv: list[str] | None = None) -> int:
     for overlap, count, gap in cases:
         worst = []
         for seed in range(args.seeds):
-            truth, frames, ties, start = draw(np.random.default_rng(seed), args, overlap, count, gap)
+            truth, frames, ties, start = adjustment_inputs(
+                seed,
+                count,
+                tuple(args.size),
+                overlap,
+                GSD_M,
+                gap=gap,
+                ties_per_pair=args.ties,
+                tie_noise_px=args.tie_noise_px,
+                gps_noise_m=args.gps_noise_m,
+            )
             started = time.perf_counter()
             homs = adjust_plane(MosaicConfig(mode="strip"), frames, start, count // 2, ties)
             seconds = time.perf_counter() - started

@@ -31,6 +31,7 @@ from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -452,6 +453,56 @@ def _strip_homographies(
         tilt = np.array([[1, 0, 0], [0, 1, 0], [p1 / w, p2 / h, 1]])
         result.append(_translation(0.0, cy) @ rotate_scale @ tilt @ to_centre)
     return result
+
+
+def adjustment_inputs(
+    seed: int,
+    n_frames: int,
+    frame_size: tuple[int, int],
+    overlap: float,
+    gsd_m: float,
+    *,
+    gap: int = 1,
+    ties_per_pair: int = 400,
+    tie_noise_px: float = 0.1,
+    gps_noise_m: float = 1.0,
+) -> tuple[list[Any], dict[int, Any], dict[tuple[int, int], Any], dict[int, np.ndarray]]:
+    """What align_frames' plane adjustment gets from a strip, drawn without rendering a pixel: the true frame
+    -> ground px homographies (those of :func:`make_strip`), the frames with GPS fixes of their centres (Gaussian
+    noise, ``gps_accuracy_m`` the noise), tie points between each frame and the next ``gap`` frames sharing at
+    least 10 % of a frame (``ties_per_pair`` spread over the overlap, Gaussian noise), and the start chained
+    from the middle frame through consecutive pairs. Ground px are ``gsd_m`` m (UTM zone 32N)."""
+    from workers.algorithms.mosaic import TiePoints, apply_homography, chain_homographies
+    from workers.records import Frame
+
+    rng = np.random.default_rng(seed)
+    w, h = frame_size
+    truth = _strip_homographies(rng, n_frames, frame_size, overlap, 0.3, 0.005, 0.002)
+    ties, pairwise = {}, {}
+    for i in range(n_frames):
+        for j in range(i + 1, min(n_frames, i + gap + 1)):
+            shared = overlap - (j - i - 1) * (1 - overlap)  # frame i's top rows are frame j's bottom rows
+            if shared < 0.1:
+                continue
+            points = np.column_stack(
+                [rng.uniform(0, w - 1, ties_per_pair), rng.uniform(0, (shared - 0.02) * h, ties_per_pair)]
+            )
+            seen = apply_homography(np.linalg.inv(truth[j]) @ truth[i], points) + rng.normal(
+                0, tie_noise_px, points.shape
+            )
+            ties[(i, j)] = TiePoints(points, seen)
+            if j == i + 1:
+                pairwise[(i, j)] = cv2.findHomography(points, seen, 0)[0]
+    to_wgs84 = Transformer.from_crs(32632, 4326, always_xy=True)
+    frames = {}
+    for k in range(n_frames):
+        gx, gy = apply_homography(truth[k], [[(w - 1) / 2, (h - 1) / 2]])[0] + rng.normal(0, gps_noise_m / gsd_m, 2)
+        lon, lat = to_wgs84.transform(650_000 + gsd_m * gx, 5_200_000 - gsd_m * gy)
+        gps = {"lat": lat, "lon": lon, "alt": 8000.0}
+        frames[k] = Frame(k, f"strip_{k:05d}.tif", "", w, h, w, h, 1.0, gps=gps, gps_accuracy_m=gps_noise_m)
+    root = n_frames // 2
+    parent = {k: k + 1 if k < root else k - 1 for k in range(n_frames) if k != root}
+    return truth, frames, ties, chain_homographies(root, parent, pairwise)
 
 
 def _ground_size(local: list[np.ndarray], frame_size: tuple[int, int]) -> tuple[int, int]:

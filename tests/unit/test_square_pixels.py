@@ -8,14 +8,12 @@ Frames are the strip generator's true homographies (``tests.strip_scenes``), tie
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
-from pyproj import Transformer
 
-from tests.strip_scenes import _strip_homographies
+from tests.strip_scenes import adjustment_inputs
 from tests.unit.test_level_plane import corner_errors
-from workers.algorithms.mosaic import TiePoints, apply_homography, chain_homographies
+from workers.algorithms.mosaic import TiePoints
 from workers.algorithms.mosaic.plane_adjustment import aspect_shear, aspect_shear_derivative
 from workers.config import MosaicConfig
 from workers.records import Frame
@@ -26,35 +24,14 @@ FRAMES = 120
 ROOT = FRAMES // 2
 GSD_M = 0.25 * 75_000 / SIZE[0]  # the full camera's ground: 1 m GPS noise is 4 of its px, 1 of these
 GPS_NOISE_M = 1.0
-UTM_32N = Transformer.from_crs(32632, 4326, always_xy=True)
 
 
 def _strip(
     seed: int, overlap: float = 0.5, count: int = FRAMES
 ) -> tuple[list[np.ndarray], dict[int, Frame], dict[tuple[int, int], TiePoints], dict]:
-    """Truth (frame -> ground px), frames with noisy GPS, tie points of consecutive frames, the chained start
-    (from frame ``count // 2``)."""
-    rng = np.random.default_rng(seed)
-    truth = _strip_homographies(rng, count, SIZE, overlap, 0.3, 0.005, 0.002)
-    ties, pairwise = {}, {}
-    for i in range(count - 1):
-        to_j = np.linalg.inv(truth[i + 1]) @ truth[i]
-        # frame i's top rows are frame i + 1's bottom rows (north-bound): 400 points spread over them
-        points = np.column_stack([rng.uniform(0, SIZE[0] - 1, 400), rng.uniform(0, (overlap - 0.02) * SIZE[1], 400)])
-        seen = apply_homography(to_j, points) + rng.normal(0, 0.1, points.shape)
-        ties[(i, i + 1)] = TiePoints(points, seen)
-        pairwise[(i, i + 1)] = cv2.findHomography(points, seen, 0)[0]
-    root = count // 2
-    parent = {k: k + 1 if k < root else k - 1 for k in range(count) if k != root}
-    frames = {}
-    for k in range(count):
-        gx, gy = apply_homography(truth[k], [[(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2]])[0] + rng.normal(
-            0, GPS_NOISE_M / GSD_M, 2
-        )
-        lon, lat = UTM_32N.transform(650_000 + GSD_M * gx, 5_200_000 - GSD_M * gy)
-        gps = {"lat": lat, "lon": lon, "alt": 8000.0}
-        frames[k] = Frame(k, f"strip_{k:03d}.tif", "", *SIZE, *SIZE, 1.0, gps=gps, gps_accuracy_m=1.0)
-    return truth, frames, ties, chain_homographies(root, parent, pairwise)
+    """Truth (frame -> ground px), frames with noisy GPS, tie points of consecutive frames (400 of 0.1 px), the
+    chained start (from frame ``count // 2``)."""
+    return adjustment_inputs(seed, count, SIZE, overlap, GSD_M, gps_noise_m=GPS_NOISE_M)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
