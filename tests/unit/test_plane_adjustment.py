@@ -51,3 +51,28 @@ def test_normal_equations_are_those_of_the_residuals(monkeypatch: pytest.MonkeyP
     normal, gradient = normal_equations(x, f)
     np.testing.assert_allclose(np.asarray(normal), (J.T * w) @ J, rtol=2e-4, atol=1e-6 * np.abs(normal).max())
     np.testing.assert_allclose(gradient, (J.T * w) @ r, rtol=2e-4, atol=1e-6 * np.abs(gradient).max())
+
+
+def test_the_log_scale_and_its_derivative() -> None:
+    # a frame 2000 px wide (1000 px per normalised unit) mapped at 0.5 plane px per px, squeezed 2 % in y
+    M = np.array([[[500.0, 0.0, 7.0], [0.0, 490.0, 3.0], [0.0, 0.0, 1.0]]])
+    np.testing.assert_allclose(plane_adjustment.log_scale(M, np.array([1000.0])), [0.5 * np.log(0.5 * 0.49)])
+    rng = np.random.default_rng(0)
+    A = np.eye(3) + rng.normal(0, 0.1, (5, 3, 3))
+    D = rng.normal(0, 0.05, (5, 8))
+    unit = rng.uniform(100, 1000, 5)
+
+    def corrected(D: np.ndarray) -> np.ndarray:
+        return A @ (np.eye(3) + np.pad(D, ((0, 0), (0, 1))).reshape(-1, 3, 3))
+
+    value, analytic = plane_adjustment.log_scale_derivative(corrected(D), A, unit)
+    np.testing.assert_allclose(value, plane_adjustment.log_scale(corrected(D), unit), rtol=1e-12)
+    numeric = np.stack(
+        [
+            (plane_adjustment.log_scale(corrected(D + e), unit) - plane_adjustment.log_scale(corrected(D - e), unit))
+            / 2e-6
+            for e in 1e-6 * np.eye(8)
+        ],
+        axis=-1,
+    )
+    np.testing.assert_allclose(analytic, numeric, atol=1e-8)
