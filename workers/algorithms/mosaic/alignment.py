@@ -109,8 +109,9 @@ def refine_homographies(
     plane, counted in the photos' pixels (divided by the frames' scale: see :class:`PlaneProblem`'s
     ``unit_px``), so that frames cannot shrink their points' noise away. A soft-L1 loss down-weights
     residual outliers. The derivatives are analytic and the normal equations (8 unknowns per frame) are
-    solved directly by Levenberg-Marquardt: 1.4 s for 30 frames and 40k tie points, where scipy's ``least_squares`` with
-    finite differences over a sparsity pattern took 167 s and stopped at its evaluation limit.
+    solved directly by Levenberg-Marquardt: 1.4 s for 30 frames and 40k tie points, where scipy's
+    ``least_squares`` with finite differences over a sparsity pattern took 167 s and stopped at its
+    evaluation limit.
 
     The tie-point cost is nearly flat along one mode, the slow "bending" of a chain of frames through
     their perspective terms: on a synthetic strip the true solution costs more than one bent by 3 px,
@@ -191,7 +192,7 @@ def _plane_problem(
         f_gps=np.array([number[k] for k, _, _ in gps], np.int64),
         xy_gps=np.array([xy for _, xy, _ in gps], np.float64).reshape(-1, 2),
         w_gps=np.array([w for _, _, w in gps], np.float64),
-        unit_px=np.array([max(frame_sizes[k]) / 2 for k in frames], np.float64),  # _normaliser's
+        unit_px=np.array([1.0 / norms[k][0, 0] for k in frames]),  # frame px per normalised unit
         perspective_damping=perspective_damping,
         shape_weight=shape_weight,
     )

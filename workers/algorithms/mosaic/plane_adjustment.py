@@ -153,7 +153,8 @@ class PlaneProblem:
         # d(r / s) = J / s - (r / s) (dl_i + dl_j) / 2 is summed pair by pair from the sums of J^T W J, J^T W r / s
         # and r^T W r / s^2 (30 frames, 38k tie points: 12 ms an iteration, 14.8 with the rank-one term per point;
         # 11.5 in plane px)
-        log_scales, d_log = log_scale_derivative(M, self.lift, self.unit_px)
+        centre = _centre_jacobian_derivative(M, self.lift)  # every frame's; the shape prior takes the free ones'
+        log_scales, d_log = _log_scale_derivative(*centre, self.unit_px)
         s = self._pair_scale(log_scales)
         r = r / self._per_point(s)[:, None]
         w = _irls(r, f_scale)
@@ -203,7 +204,7 @@ class PlaneProblem:
         w_damped = _irls(damped, f_scale)
         if self.shape_weight:
             free = self.free_frames()
-            shape, d_shape = aspect_shear_derivative(M[free], self.lift[free])
+            shape, d_shape = _aspect_shear_derivative(centre[0][free], centre[1][free])
             r_shape, J_shape = self.shape_weight * shape, self.shape_weight * d_shape
             w_shape, slots = _irls(r_shape, f_scale), self.slot[free]
             blocks.add(slots, slots, _weighted_products(J_shape, w_shape, J_shape))
@@ -456,41 +457,57 @@ def aspect_shear(M: np.ndarray) -> np.ndarray:
     """(n, 2) aspect ``(a - d) / (a + d)`` and shear ``(b + c) / (a + d)`` of the Jacobian ``[[a, b], [c, d]]`` of
     each (n, 3, 3) normalised frame -> plane map ``M`` at the frame's centre (normalised (0, 0)). The
     normalisation is isotropic, so these are the frame pixels' own: zero for square pixels."""
-    return _aspect_shear(M)[0]
+    return _aspect_shear_of(_centre_jacobian(M)[2])
 
 
 def aspect_shear_derivative(M: np.ndarray, lift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`aspect_shear` of ``M = A (I + D)`` ((n, 3, 3) ``lift`` ``A``) and its (n, 2, 8) derivative by the
     eight parameters of ``D``."""
-    value = _aspect_shear(M)[0]
-    J, dJ = _centre_jacobian_derivative(M, lift)
+    return _aspect_shear_derivative(*_centre_jacobian_derivative(M, lift))
+
+
+def log_scale(M: np.ndarray, unit_px: np.ndarray) -> np.ndarray:
+    """(n,) log of each (n, 3, 3) normalised frame -> plane map ``M``'s scale at the frame's centre, plane px per
+    frame px: half the log of its Jacobian's determinant, less the log of the frame's ``unit_px``."""
+    return _log_scale(_centre_jacobian(M)[2], unit_px)
+
+
+def log_scale_derivative(M: np.ndarray, lift: np.ndarray, unit_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`log_scale` of ``M = A (I + D)`` ((n, 3, 3) ``lift`` ``A``) and its (n, 8) derivative by the eight
+    parameters of ``D``."""
+    return _log_scale_derivative(*_centre_jacobian_derivative(M, lift), unit_px)
+
+
+def _aspect_shear_of(J: np.ndarray) -> np.ndarray:
+    """(n, 2) :func:`aspect_shear` of the (n, 2, 2) Jacobians ``J``."""
+    trace = J[:, 0, 0] + J[:, 1, 1]
+    return np.column_stack([J[:, 0, 0] - J[:, 1, 1], J[:, 0, 1] + J[:, 1, 0]]) / trace[:, None]
+
+
+def _aspect_shear_derivative(J: np.ndarray, dJ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`aspect_shear_derivative` from the centre's Jacobians ``J`` (n, 2, 2) and their derivatives ``dJ``
+    (n, 8, 2, 2)."""
+    value = _aspect_shear_of(J)
     d_trace = dJ[:, :, 0, 0] + dJ[:, :, 1, 1]
     d_value = np.stack([dJ[:, :, 0, 0] - dJ[:, :, 1, 1], dJ[:, :, 0, 1] + dJ[:, :, 1, 0]], axis=1)  # (n, 2, 8)
     trace = J[:, 0, 0] + J[:, 1, 1]
     return value, (d_value - value[:, :, None] * d_trace[:, None, :]) / trace[:, None, None]
 
 
-def log_scale(M: np.ndarray, unit_px: np.ndarray) -> np.ndarray:
-    """(n,) log of each (n, 3, 3) normalised frame -> plane map ``M``'s scale at the frame's centre, plane px per
-    frame px: half the log of its Jacobian's determinant, less the log of the frame's ``unit_px``."""
-    return _log_scale(_aspect_shear(M)[3], unit_px)
-
-
-def log_scale_derivative(M: np.ndarray, lift: np.ndarray, unit_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`log_scale` of ``M = A (I + D)`` ((n, 3, 3) ``lift`` ``A``) and its (n, 8) derivative by the eight
-    parameters of ``D``: ``d log det J = trace(J^-1 dJ)``."""
-    J, dJ = _centre_jacobian_derivative(M, lift)
-    return _log_scale(J, unit_px), 0.5 * np.einsum("nab,nmba->nm", np.linalg.inv(J), dJ)
-
-
 def _log_scale(J: np.ndarray, unit_px: np.ndarray) -> np.ndarray:
     return 0.5 * np.log(np.abs(np.linalg.det(J))) - np.log(unit_px)
+
+
+def _log_scale_derivative(J: np.ndarray, dJ: np.ndarray, unit_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`log_scale_derivative` from ``J`` and ``dJ`` as :func:`_aspect_shear_derivative` takes them:
+    ``d log det J = trace(J^-1 dJ)``."""
+    return _log_scale(J, unit_px), 0.5 * np.einsum("nab,nmba->nm", np.linalg.inv(J), dJ)
 
 
 def _centre_jacobian_derivative(M: np.ndarray, lift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The (n, 2, 2) Jacobian ``J`` of each ``M = A (I + D)`` at its frame's centre and its (n, 8, 2, 2)
     derivative by the eight parameters of ``D``."""
-    _, u, h, J = _aspect_shear(M)
+    u, h, J = _centre_jacobian(M)
     # d M / d m: column COL[m] of M gains column ROW[m] of A, the others nothing
     dM = np.zeros((len(M), 8, 3, 3))
     dM[:, np.arange(8), :, _COL] = lift[:, :, _ROW].transpose(2, 0, 1)  # indexed (8, n, 3)
@@ -500,15 +517,13 @@ def _centre_jacobian_derivative(M: np.ndarray, lift: np.ndarray) -> tuple[np.nda
     return J, (dN - J[:, None] * dh[:, :, 2, None, None]) / h[:, 2, None, None, None]
 
 
-def _aspect_shear(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`aspect_shear`, with the centre's plane point ``u`` (n, 2), its homogeneous ``h`` (n, 3) and the
-    Jacobian ``J`` (n, 2, 2) it came from."""
+def _centre_jacobian(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The centre's plane point ``u`` (n, 2), its homogeneous ``h`` (n, 3) and the Jacobian ``J`` (n, 2, 2) there
+    of each (n, 3, 3) normalised frame -> plane map ``M``."""
     h = M[:, :, 2]
     u = h[:, :2] / h[:, 2:]
     J = (M[:, :2, :2] - u[:, :, None] * M[:, 2:3, :2]) / h[:, 2, None, None]
-    trace = J[:, 0, 0] + J[:, 1, 1]
-    value = np.column_stack([J[:, 0, 0] - J[:, 1, 1], J[:, 0, 1] + J[:, 1, 0]]) / trace[:, None]
-    return value, u, h, J
+    return u, h, J
 
 
 def _pair_products(wi: np.ndarray, wj: np.ndarray, J_i: np.ndarray, J_j: np.ndarray) -> np.ndarray:
