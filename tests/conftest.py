@@ -235,6 +235,9 @@ def live_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServi
         redis_url,
         FOTOSKHEMA_CELERY_QUEUE="cpu",
         FOTOSKHEMA_BASEMAP_URL="none",  # the tests run offline: a page that asked OpenStreetMap would fail
+        # the event stream samples the job record: at the default 0.5 s a small job's stages can all pass between
+        # two looks (CI saw 2 of 7 once)
+        FOTOSKHEMA_SSE_POLL_SECONDS="0.1",
     )
     port = free_port()
     token = make_token(env, "admin", admin=True)
