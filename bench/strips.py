@@ -287,9 +287,15 @@ def main(argv: list[str] | None = None) -> int:
             "centre_abs_floor_rms_m": 2 * args.gps_noise_m / np.sqrt(args.frames),
             **truth_errors(strip, root / "job"),
             "ccd_step_error": ccd_error(strip, JobWorkspace(root / "job").load_stage_report("compose_mosaic") or {}),
-            **tiles_read_back(JobWorkspace(root / "job").mosaic_path()),
         }
         for key, value in figures.items():
+            print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")
+        try:  # printed last: a rio-tiler that cannot be imported (the GPU machine's own packages) loses nothing else
+            tiles: dict[str, Any] = tiles_read_back(JobWorkspace(root / "job").mosaic_path())
+        except Exception as exc:  # noqa: BLE001 - reported as a figure
+            tiles = {"tiles_error": f"{type(exc).__name__}: {exc}"}
+        figures.update(tiles)
+        for key, value in tiles.items():
             print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")
         if args.json:
             args.json.write_text(json.dumps(figures, indent=2) + "\n")

@@ -246,18 +246,23 @@ class BlockMeans:
         self.f, self.total, self.count, self.peak = f, np.zeros(shape), np.zeros(shape), 0.0
 
     def add(self, block: np.ndarray, row: int, col: int) -> None:
-        """``block``: ``(bands, h, w)`` samples whose first pixel is at (``row``, ``col``) of the image."""
+        """``block``: ``(bands, h, w)`` samples whose first pixel is at (``row``, ``col``) of the image.
+
+        Each band's samples are summed per cell in integers first and weighted into brightness on the cells
+        (the weights are linear): a 135 MP frame's 2344 blocks took 1.26 s in float64 per pixel, the blocks'
+        decode 1.36 s, and the upload check ran no faster on 16 threads than on 2 (held the GIL)."""
         if block.size == 0:
             return
-        self.peak = max(self.peak, float(block.max()))
-        luma = block[0] if len(block) < 3 else 0.299 * block[0] + 0.587 * block[1] + 0.114 * block[2]
+        if block.dtype != np.uint8:  # 8-bit samples' white level is 255 whatever their peak (full_scale)
+            self.peak = max(self.peak, float(block.max()))
         rows = (row + np.arange(block.shape[1])) // self.f
         cols = (col + np.arange(block.shape[2])) // self.f
         r0 = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
         c0 = np.flatnonzero(np.r_[True, cols[1:] != cols[:-1]])
-        sums = np.add.reduceat(np.add.reduceat(luma.astype(np.float64), r0, axis=0), c0, axis=1)
+        sums = np.add.reduceat(np.add.reduceat(block, r0, axis=1, dtype=np.int64), c0, axis=2)
+        luma = sums[0] if len(block) < 3 else 0.299 * sums[0] + 0.587 * sums[1] + 0.114 * sums[2]
         counts = np.outer(np.diff(np.r_[r0, len(rows)]), np.diff(np.r_[c0, len(cols)]))
-        self.total[np.ix_(rows[r0], cols[c0])] += sums
+        self.total[np.ix_(rows[r0], cols[c0])] += luma
         self.count[np.ix_(rows[r0], cols[c0])] += counts
 
     def gray(self) -> np.ndarray:

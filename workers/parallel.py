@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import os
 import threading
-from collections import OrderedDict
-from collections.abc import Callable, Hashable, Sequence
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from collections import OrderedDict, deque
+from collections.abc import Callable, Hashable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from typing import Generic, TypeVar
 
 from workers.workspace import ProgressFn
@@ -49,6 +49,25 @@ def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress
     finally:
         pool.shutdown(wait=True, cancel_futures=True)  # work not yet started is dropped
     return results  # type: ignore[return-value]
+
+
+def ordered_imap(fn: Callable[[T], R], items: Sequence[T], threads: int) -> Iterator[R]:
+    """``fn(x) for x in items``, in order, on ``threads`` threads with at most two results per thread computed
+    ahead of the one consumed: a caller that writes each result as it comes holds a few, never all of them."""
+    if threads <= 1 or len(items) <= 1:
+        yield from (fn(item) for item in items)
+        return
+    pool = ThreadPoolExecutor(max_workers=threads)
+    pending: deque[Future[R]] = deque()
+    try:
+        for item in items:
+            if len(pending) >= 2 * threads:
+                yield pending.popleft().result()
+            pending.append(pool.submit(fn, item))
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)  # a caller that stopped early: the rest is dropped
 
 
 V = TypeVar("V")

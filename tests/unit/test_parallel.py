@@ -1,13 +1,17 @@
-"""The ordered thread map: order kept, progress counted, and an interruption stops the rest."""
+"""The ordered thread maps: order kept, progress counted, an interruption stops the rest, and the streaming one
+holds only a few results ahead of its consumer."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 import time
 
 import pytest
 
-from workers.parallel import ordered_map, thread_count
+from workers.parallel import ordered_imap, ordered_map, thread_count
 
 
 def test_results_keep_their_order_and_progress_counts_up() -> None:
@@ -36,3 +40,51 @@ def test_an_exception_in_progress_stops_work_not_yet_started() -> None:
     with pytest.raises(RuntimeError):
         ordered_map(work, list(range(50)), 2, cancel, "pair")
     assert len(started) < 10  # the queued items were dropped, not run
+
+
+def test_the_streaming_map_keeps_order_and_computes_only_a_few_ahead() -> None:
+    finished: list[int] = []
+    lock = threading.Lock()
+
+    def work(x: int) -> int:
+        time.sleep(0.002 * (x % 3))
+        with lock:
+            finished.append(x)
+        return x * x
+
+    ahead = []
+    out = []
+    for k, value in enumerate(ordered_imap(work, list(range(40)), 3)):
+        time.sleep(0.01)  # a slow consumer (the band's writer): the threads must wait for it
+        with lock:
+            ahead.append(len(finished) - (k + 1))
+        out.append(value)
+    assert out == [x * x for x in range(40)]
+    assert max(ahead) <= 2 * 3  # results held, computed but not yet consumed: two per thread at most
+    assert list(ordered_imap(work, [7], 4)) == [49] and list(ordered_imap(work, [1, 2], 1)) == [1, 4]
+
+
+def test_a_consumer_that_stops_drops_the_work_not_yet_started() -> None:
+    started: list[int] = []
+    lock = threading.Lock()
+
+    def work(x: int) -> int:
+        with lock:
+            started.append(x)
+        time.sleep(0.01)
+        return x
+
+    stream = ordered_imap(work, list(range(100)), 2)
+    assert [next(stream) for _ in range(3)] == [0, 1, 2]
+    stream.close()  # the band's writer failed: the generator's pool is shut down
+    assert len(started) <= 3 + 2 * 2 + 2
+
+
+def test_the_stages_bound_gdals_block_cache_unless_the_environment_sets_it() -> None:
+    """GDAL would take 5 % of the machine's memory per process (6.4 GB on a 128 GB host)."""
+    code = "import workers, rasterio.env; print(rasterio.env.get_gdal_config('GDAL_CACHEMAX'))"  # GDAL's, in bytes
+    env = {k: v for k, v in os.environ.items() if k != "GDAL_CACHEMAX"}
+    run = [sys.executable, "-c", code]
+    assert subprocess.run(run, env=env, capture_output=True, text=True, check=True).stdout.split() == [str(512 << 20)]
+    env["GDAL_CACHEMAX"] = "64"
+    assert subprocess.run(run, env=env, capture_output=True, text=True, check=True).stdout.split() == [str(64 << 20)]
