@@ -3,11 +3,13 @@ calls, so threads give real parallelism without copying images between processes
 
 from __future__ import annotations
 
+import ctypes
 import os
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, as_completed
+from functools import cache
 from typing import Generic, TypeVar
 
 from workers.workspace import ProgressFn
@@ -25,6 +27,28 @@ def thread_count(requested: int) -> int:
 def usable_cores() -> int:
     affinity = getattr(os, "sched_getaffinity", None)
     return max(1, len(affinity(0)) if affinity is not None else (os.cpu_count() or 1))
+
+
+# glibc gives arrays over 128 KiB (its starting threshold) pages of their own and returns them when freed, so a
+# stage that makes and drops a window's float copies again and again faults every page in anew: composing one band
+# of a 75000 px strip took 600k page faults and 1.5 s of system time in 3.0 s (and threads fault under one lock
+# per process). Kept in the process up to 32 MiB an array and 64 MiB free at a heap's top: 6k faults, 0.6 s.
+# Only for work on large frames: on a small mosaic it bought 5-10 % of time for 20-40 % more peak memory.
+MALLOC_MMAP_THRESHOLD = 32 << 20
+MALLOC_TRIM_THRESHOLD = 64 << 20
+
+
+@cache
+def keep_freed_memory() -> bool:
+    """Set glibc's thresholds (``mallopt``) for the rest of this process, unless the environment sets them;
+    False where libc is not glibc or the environment decides."""
+    if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")):
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):  # musl, macOS, Windows
+        return False
+    return bool(mallopt(-3, MALLOC_MMAP_THRESHOLD) and mallopt(-1, MALLOC_TRIM_THRESHOLD))  # M_MMAP_, M_TRIM_
 
 
 def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress: ProgressFn, unit: str) -> list[R]:

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from workers.parallel import ordered_imap, ordered_map, thread_count
+from workers.parallel import keep_freed_memory, ordered_imap, ordered_map, thread_count
 
 
 def test_results_keep_their_order_and_progress_counts_up() -> None:
@@ -88,3 +88,34 @@ def test_the_stages_bound_gdals_block_cache_unless_the_environment_sets_it() -> 
     assert subprocess.run(run, env=env, capture_output=True, text=True, check=True).stdout.split() == [str(512 << 20)]
     env["GDAL_CACHEMAX"] = "64"
     assert subprocess.run(run, env=env, capture_output=True, text=True, check=True).stdout.split() == [str(64 << 20)]
+
+
+FAULTS = """
+import resource, sys
+import numpy as np
+from workers.parallel import keep_freed_memory
+if sys.argv[1] == "keep":
+    assert keep_freed_memory()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(50):  # a compose window's float copies, 3 MiB each, made together and dropped
+    copies = [np.ones((512, 512, 3), np.float32) for _ in range(4)]
+    del copies
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt and Linux's page-fault count")
+def test_kept_freed_memory_is_not_faulted_in_again() -> None:
+    env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_")}
+    faults = {
+        mode: int(
+            subprocess.run(
+                [sys.executable, "-c", FAULTS, mode], env=env, capture_output=True, text=True, check=True
+            ).stdout
+        )  # fmt: skip
+        for mode in ("default", "keep")
+    }
+    # by default glibc raises its threshold to an array's size once one is freed, and returns the heap's top once
+    # it is twice that: each round's four copies (768 pages each) are faulted in again; kept, only the first's
+    assert faults["keep"] < 4 * 768 * 2 and faults["default"] > 4 * 768 * 25, faults
+    assert keep_freed_memory() in (True, False)

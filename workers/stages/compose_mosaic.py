@@ -38,7 +38,7 @@ from workers.algorithms.mosaic import (
 )
 from workers.cog_writer import band_fits, open_cog_band_writer, open_cog_index_band_writer, write_cog_from_bands
 from workers.config import MosaicConfig
-from workers.parallel import RecentCache, ordered_imap, thread_count
+from workers.parallel import RecentCache, keep_freed_memory, ordered_imap, thread_count
 from workers.photo_io import WindowReader, dct_block, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import (
@@ -113,6 +113,8 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     """Compose the band of rows from ``key`` into its files (``compose_band_path``, ``index_band_path``)."""
     y = int(key)
     geo = ws.load_georef()
+    if not _raw_bands(geo):  # a gigapixel mosaic's windows: their arrays kept for the next (parallel)
+        keep_freed_memory()
     shared = ws.load_part_inputs(STAGE)
     gains = {int(k): np.array(g, np.float64) for k, g in shared["gains"].items()}
     vignette = (float(shared["vignette"][0]), float(shared["vignette"][1]))

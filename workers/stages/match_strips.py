@@ -28,7 +28,7 @@ from workers.algorithms.strips import (
     register_coarse,
 )
 from workers.config import MosaicConfig
-from workers.parallel import RecentCache, thread_count
+from workers.parallel import RecentCache, keep_freed_memory, thread_count
 from workers.photo_io import WindowReader
 from workers.records import Frame, PairRecord
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
@@ -58,6 +58,7 @@ def part_threads(cfg: MosaicConfig) -> int:
 def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     """Tie points of pair ``key``: ``matches/pair_I_J.npz`` when it is accepted; the record is its
     ``PairRecord`` and what the coarse registration chose."""
+    keep_freed_memory()  # native windows of aerial frames, made and dropped pair after pair (workers.parallel)
     i, j = (int(k) for k in key.split("_"))
     by_index = {f.index: f for f in ws.load_frames()}
     fa, fb = by_index[i], by_index[j]
