@@ -54,7 +54,9 @@ class MosaicConfig(BaseModel):
     # fine on a pyramid with the spread criterion, then at native resolution read by window
     mode: Literal["planar", "ortho", "strip"] = "planar"
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where gpu_kernels run; auto: CUDA when present
-    threads: int = Field(0, ge=0, le=64)  # threads matching frame pairs on the CPU; 0: one per CPU core
+    threads: int = Field(
+        0, ge=0, le=64
+    )  # threads for per-frame and per-pair work; 0: one per CPU core (GPU strip pairs: 1)
     working_max_px: int = Field(2048, ge=256, le=20000)  # longest side of the working copies, px
     # planar mode: longest side the features are found at, px (about 0.6 MP per frame, as cv2.Stitcher's
     # registration_resol); their tie points are refined on the working copies. Ortho mode: working copies

@@ -78,3 +78,15 @@ def test_a_strip_whose_frames_share_no_ground_with_both_neighbours_is_warned_of(
     precision = {"median_m": 0.35, "max_m": 0.72, "max_photo_px": 2.88, "worst_frame": "strip_000.tif"}
     (warning,) = _warnings({**base, "triple_overlap_share": 0.01, "corner_precision": precision})
     assert "corners known to 0.72 m, 2.9 photo px, 1 sigma, at strip_000.tif" in warning
+
+
+def test_strip_tie_points_take_one_pair_at_a_time_on_a_gpu_unless_told(monkeypatch: pytest.MonkeyPatch) -> None:
+    from workers.config import MosaicConfig
+    from workers.parallel import usable_cores
+    from workers.stages import match_strips
+
+    assert match_strips.part_threads(MosaicConfig(mode="strip", device="cpu")) == usable_cores()
+    assert match_strips.part_threads(MosaicConfig(mode="strip", device="cpu", threads=3)) == 3
+    monkeypatch.setattr(match_strips, "resolve_device", lambda requested: "cuda")
+    assert match_strips.part_threads(MosaicConfig(mode="strip")) == 1
+    assert match_strips.part_threads(MosaicConfig(mode="strip", threads=4)) == 4
