@@ -113,7 +113,7 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     """Compose the band of rows from ``key`` into its files (``compose_band_path``, ``index_band_path``)."""
     y = int(key)
     geo = ws.load_georef()
-    if not _raw_bands(geo):  # a gigapixel mosaic's windows: their arrays kept for the next (parallel)
+    if not _raw_bands(geo):  # a gigapixel mosaic: glibc keeps a window's freed arrays for the next (parallel)
         keep_freed_memory()
     shared = ws.load_part_inputs(STAGE)
     gains = {int(k): np.array(g, np.float64) for k, g in shared["gains"].items()}
