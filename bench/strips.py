@@ -7,7 +7,8 @@ Run by hand from the repository root::
 Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD steps, vignetting, noisy GPS in a
 side ``gps.csv``; ``--render-processes`` at once) before the clock starts; with ``--keep DIR`` a strip rendered
 there before with the same arguments is used again (its truth pickled beside it) and the job folder is
-replaced. The pipeline then runs in a spawned child process (its own peak memory). Printed: stage times and
+replaced. The pipeline then runs in a spawned child process (its own peak memory). Printed: stage times (and the
+rest, mostly the upload check of every frame) and
 frames per hour, peak RSS, disk (input, outputs, the job folder's peak size sampled while it ran), tie-point
 RMS, every frame corner's error against the truth after one similarity (ground px, which are native px), the
 frame centres' absolute error in metres against the GPS noise / sqrt(frames) the issue asks for, the mosaic's
@@ -281,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
             "gps_residual_rms_m": report["gps_residual_rms_m"],
             "gps_drift_m": report["gps_drift_m"],
             "stage_seconds": report["stage_seconds"],
+            # the rest of the run: mostly the upload check of every frame (process_directory's inspect_image)
+            "outside_stages_s": result["seconds"] - sum(report["stage_seconds"].values()),
             "gps_noise_over_sqrt_frames_m": args.gps_noise_m / np.sqrt(args.frames),
             # what a similarity (4 parameters) fitted to n fixes of sigma per axis puts centres within, RMS over
             # the fixes: sigma sqrt(trace(hat) / n) = 2 sigma / sqrt(n), twice the figure above
