@@ -4,15 +4,16 @@ Run by hand from the repository root::
 
     .venv/bin/python bench/strips.py [--frames 40] [--size 75000 1800] [--options '{"...": ...}'] [--keep DIR]
 
-Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD steps, vignetting, noisy GPS in a
-side ``gps.csv``; ``--render-processes`` at once) before the clock starts; with ``--keep DIR`` a strip rendered
-there before with the same arguments is used again (its truth pickled beside it) and the job folder is
-replaced. The pipeline then runs in a spawned child process (its own peak memory). Printed: stage times (and the
-rest, mostly the upload check of every frame) and frames per hour, peak RSS, disk (input, outputs, the job
-folder's peak size sampled while it ran), tie-point RMS, every frame corner's error against the truth after one similarity (ground px, which are native px), the
-frame centres' absolute error in metres against the GPS noise / sqrt(frames) the issue asks for, the mosaic's
-size, and two web-map tiles read back from the mosaic by rio-tiler: one at its coarsest zoom (from the smallest
-overview) and one at its finest (full resolution), each with its time and the share of it covered.
+Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD steps, vignetting, noisy GPS in a side
+``gps.csv``; ``--render-processes`` at once) before the clock starts; with ``--keep DIR`` a strip rendered there
+before with the same arguments is used again (its truth pickled beside it) and the job folder is replaced. The
+pipeline then runs in a spawned child process (its own peak memory). Printed: stage times (and the rest, mostly the
+upload check of every frame) and frames per hour, peak RSS, disk (input, outputs, the job folder's peak size
+sampled while it ran), tie-point RMS, every frame corner's error against the truth after one similarity (ground px,
+which are native px), the frame centres' absolute error in metres against the GPS noise / sqrt(frames) the issue
+asks for, the mosaic's size, and two web-map tiles read back from the mosaic by rio-tiler: one at its coarsest zoom
+(from the smallest overview) and one at its finest (full resolution), each with its time and the share of it
+covered.
 """
 
 from __future__ import annotations
