@@ -282,3 +282,20 @@ def test_an_overview_level_holds_its_own_rows_only(tmp_path: Path, kind: str) ->
         held = sum((v if v.base is None else v.base).nbytes for v in level.values)
         own = sum(v.nbytes for v in level.values)
         assert held <= own + 512 * level.width * 3, (level.width, held, own)  # at most one array shared
+
+
+def test_pooling_by_blocks_of_columns_equals_pooling_whole(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The overviews' 2x2 sums and averages on several threads, by blocks of columns, an odd width and height:
+    the same numbers as one pass (blocks start at even columns, so no 2x2 block is cut)."""
+    monkeypatch.setattr(cog_writer, "usable_cores", lambda: 3)
+    monkeypatch.setattr(cog_writer, "_COLUMNS_PX", 16)
+    rng = np.random.default_rng(5)
+    rgb = rng.integers(0, 256, (9, 101, 3), dtype=np.uint8)
+    covered = (rng.random((9, 101)) > 0.3).astype(np.uint8)
+    sums, counts = cog_writer._pool(np.where(covered[..., None] > 0, rgb, np.uint8(0)), covered, np.uint16)
+    for wide in (np.uint32, np.uint64):
+        whole = cog_writer._pool(sums, counts, wide)
+        blocks = cog_writer._by_columns(lambda s, c, wide=wide: cog_writer._pool(s, c, wide), sums, counts)
+        assert all(np.array_equal(a, b) and a.dtype == b.dtype for a, b in zip(whole, blocks, strict=True))
+        assert np.array_equal(cog_writer._by_columns(cog_writer._average, *whole), cog_writer._average(*whole))
+    assert cog_writer._by_columns(cog_writer._average, sums, counts).shape == (5, 51, 3)
