@@ -175,6 +175,12 @@ def ccd_error(strip: Any, report: dict[str, Any]) -> float | None:
     return float(np.abs(np.diff(np.log(found)) - truth).mean() / np.abs(truth).mean())
 
 
+def show(figures: dict[str, Any]) -> None:
+    """One figure a line: its name, then its value (floats to 4 significant digits)."""
+    for key, value in figures.items():
+        print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")
+
+
 def tiles_read_back(mosaic: Path) -> dict[str, float]:
     """rio-tiler's 256 px tiles at the mosaic's centre at its coarsest and finest zooms: seconds and the share of
     pixels covered (each tile opens the COG afresh, as a tile server's request does)."""
@@ -291,15 +297,13 @@ def main(argv: list[str] | None = None) -> int:
             **truth_errors(strip, root / "job"),
             "ccd_step_error": ccd_error(strip, JobWorkspace(root / "job").load_stage_report("compose_mosaic") or {}),
         }
-        for key, value in figures.items():
-            print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")
+        show(figures)
         try:  # printed last: a rio-tiler that cannot be imported (the GPU machine's own packages) loses nothing else
             tiles: dict[str, Any] = tiles_read_back(JobWorkspace(root / "job").mosaic_path())
         except Exception as exc:  # noqa: BLE001 - reported as a figure
             tiles = {"tiles_error": f"{type(exc).__name__}: {exc}"}
         figures.update(tiles)
-        for key, value in tiles.items():
-            print(f"{key:32} {value:.4g}" if isinstance(value, float) else f"{key:32} {value}")
+        show(tiles)
         if args.json:
             args.json.write_text(json.dumps(figures, indent=2) + "\n")
     finally:

@@ -74,7 +74,7 @@ def sift(
         sigma = _octave_sigma(s_float, levels, sigma0)
         angles, owner = _orientations(octave, x, y, s_int, sigma, max_orientations, 4 * chunk)
         x, y, s_float, s_int, contrast = x[owner], y[owner], s_float[owner], s_int[owner], contrast[owner]
-        desc = _descriptors(octave, x, y, s_int, _octave_sigma(s_float, levels, sigma0), angles, layout, chunk)
+        desc = _descriptors(octave, x, y, s_int, sigma[owner], angles, layout, chunk)
         parts.append(
             Keypoints(
                 xy=xp.stack([x, y], axis=1).astype(xp.float64) * octave.spacing + offset,

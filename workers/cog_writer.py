@@ -18,6 +18,7 @@ import struct
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
 
@@ -320,7 +321,7 @@ class _AverageChain:
                 return
             # a level-k sum holds 4^(k+1) pixels of 255 at most: 32 bits to k = 10 (factor 2048)
             wide = np.uint32 if k <= 10 else np.uint64
-            sums, counts = _by_columns(lambda s, c, wide=wide: _pool(s, c, wide), sums, counts)
+            sums, counts = _by_columns(partial(_pool, dtype=wide), sums, counts)
             self.levels[k].add(_by_columns(_average, sums, counts), counts > 0)
 
 

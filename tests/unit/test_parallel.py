@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -24,15 +25,22 @@ def test_results_keep_their_order_and_progress_counts_up() -> None:
     assert thread_count(3) == 3 and thread_count(0) >= 1
 
 
-def test_an_exception_in_progress_stops_work_not_yet_started() -> None:
+def recording(seconds: float) -> tuple[list[int], Callable[[int], int]]:
+    """The items started so far, and work that records its item, sleeps ``seconds`` and returns it."""
     started: list[int] = []
     lock = threading.Lock()
 
     def work(x: int) -> int:
         with lock:
             started.append(x)
-        time.sleep(0.05)
+        time.sleep(seconds)
         return x
+
+    return started, work
+
+
+def test_an_exception_in_progress_stops_work_not_yet_started() -> None:
+    started, work = recording(0.05)
 
     def cancel(_fraction: float, _detail: str) -> None:
         raise RuntimeError("cancelled")
@@ -65,15 +73,7 @@ def test_the_streaming_map_keeps_order_and_computes_only_a_few_ahead() -> None:
 
 
 def test_a_consumer_that_stops_drops_the_work_not_yet_started() -> None:
-    started: list[int] = []
-    lock = threading.Lock()
-
-    def work(x: int) -> int:
-        with lock:
-            started.append(x)
-        time.sleep(0.01)
-        return x
-
+    started, work = recording(0.01)
     stream = ordered_imap(work, list(range(100)), 2)
     assert [next(stream) for _ in range(3)] == [0, 1, 2]
     stream.close()  # the band's writer failed: the generator's pool is shut down
