@@ -20,6 +20,8 @@ from rasterio.enums import Resampling
 from rasterio.errors import NotGeoreferencedWarning
 from rasterio.windows import Window
 
+from workers.tiff_jpeg import JpegBlockError, JpegBlocks
+
 TIFF_SUFFIXES = (".tif", ".tiff")
 # a photo has no map placement; rasterio would say so on every open
 warnings.filterwarnings("ignore", category=NotGeoreferencedWarning, module="rasterio")
@@ -67,6 +69,8 @@ def reduced_size(width: int, height: int, max_px: int) -> tuple[int, int]:
 
 
 def _tiff_reduced(path: Path, max_px: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+    if (fast := read_jpeg_reduced(path, max_px)) is not None:
+        return fast
     try:
         with rasterio.open(path) as src:
             width, height = src.width, src.height
@@ -79,6 +83,26 @@ def _tiff_reduced(path: Path, max_px: int) -> tuple[np.ndarray, tuple[int, int]]
             return _to_bgr8(bands, src.dtypes[0]), (width, height)
     except (rasterio.errors.RasterioError, ValueError):  # unreadable, or samples that are not 8/16-bit
         return None
+
+
+def read_jpeg_reduced(path: str | Path, max_px: int) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """:func:`read_reduced` of a JPEG-in-TIFF through :class:`JpegBlocks` when its DCT scaling gets at least half
+    way (area-averaged the rest of the way); None when it does not apply or a block would not decode here."""
+    jpeg = JpegBlocks.open(path)
+    if jpeg is None:
+        return None
+    out_w, out_h = reduced_size(jpeg.width, jpeg.height, max_px)
+    scale = jpeg.scale_for(min(jpeg.width / out_w, jpeg.height / out_h))
+    if scale == 1:
+        return None
+    try:
+        pixels = jpeg.reduced(scale)
+    except JpegBlockError:
+        return None
+    reduced = np.ascontiguousarray(pixels[..., ::-1] if pixels.ndim == 3 else np.repeat(pixels[..., None], 3, axis=2))
+    if reduced.shape[:2] != (out_h, out_w):
+        reduced = cv2.resize(reduced, (out_w, out_h), interpolation=cv2.INTER_AREA)
+    return reduced, (jpeg.width, jpeg.height)
 
 
 class WindowReader:

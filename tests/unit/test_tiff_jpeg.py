@@ -1,0 +1,146 @@
+"""A JPEG-in-TIFF's blocks decoded at a DCT scale (``workers.tiff_jpeg``) against GDAL's full decode, area-averaged:
+tiled and striped, YCbCr- and RGB-coded, one band; what it leaves to GDAL; and the three readers built on it (the
+working copies, the upload check, the previews) giving GDAL's figures."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from PIL import Image
+
+import workers.image_meta as image_meta
+import workers.photo_io as photo_io
+from tests.scenes import make_texture
+from workers.photo_check import DUPLICATE_BITS, hamming, preview_jpeg
+from workers.tiff_jpeg import JpegBlockError, JpegBlocks
+
+WIDTH, HEIGHT = 2048, 328  # a reduced strip frame: the edge tiles are partial, 328 = 8 x 41 rows
+TILED = {"compress": "jpeg", "jpeg_quality": 90, "tiled": True, "blockxsize": 256, "blockysize": 256}  # as the strips
+
+
+LUMA = np.array([0.299, 0.587, 0.114])
+
+
+def _write(path: Path, rgb: np.ndarray, **options: object) -> Path:
+    bands = np.moveaxis(rgb, 2, 0) if rgb.ndim == 3 else rgb[None]
+    profile = {"driver": "GTiff", "width": rgb.shape[1], "height": rgb.shape[0], "count": len(bands), "dtype": "uint8"}
+    with rasterio.open(path, "w", **{**profile, **options}) as dst:
+        dst.write(bands)
+    return path
+
+
+def _gdal(path: Path) -> np.ndarray:
+    """GDAL's full decode, (h, w, bands)."""
+    with rasterio.open(path) as src:
+        return np.moveaxis(src.read(), 0, 2)
+
+
+def _box(image: np.ndarray, s: int) -> np.ndarray:
+    h, w = image.shape[0] // s, image.shape[1] // s
+    return image[: h * s, : w * s].reshape(h, s, w, s, -1).astype(float).mean(axis=(1, 3))
+
+
+@pytest.fixture(scope="module")
+def rgb() -> np.ndarray:
+    return np.ascontiguousarray(make_texture(HEIGHT, WIDTH, seed=5)[..., ::-1])  # RGB
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {**TILED, "photometric": "ycbcr"},
+        {**TILED, "photometric": "rgb"},
+        {
+            "compress": "jpeg",
+            "jpeg_quality": 90,
+            "photometric": "ycbcr",
+            "tiled": False,
+            "BIGTIFF": "YES",
+        },  # strips of 8 or 16 rows
+        {**TILED, "grey": True},
+    ],
+    ids=["tiled-ycbcr", "tiled-rgb", "striped-ycbcr-bigtiff", "tiled-grey"],
+)
+def test_scaled_blocks_are_the_area_average_of_gdals_decode(tmp_path: Path, rgb: np.ndarray, options: dict) -> None:
+    options = dict(options)
+    image = rgb[..., 1] if options.pop("grey", False) else rgb
+    path = _write(tmp_path / "f.tif", image, **options)
+    jpeg = JpegBlocks.open(path)
+    assert jpeg is not None and (jpeg.width, jpeg.height, jpeg.bands) == (
+        WIDTH,
+        HEIGHT,
+        image.ndim if image.ndim == 3 else 1,
+    )
+    whole = _gdal(path)
+    for s in (2, 4, 8):
+        reduced = jpeg.reduced(s)
+        assert reduced.shape[:2] == (HEIGHT // s, WIDTH // s)
+        box = _box(whole, s)
+        reduced = reduced.reshape(box.shape).astype(float)
+        # brightness: the same pixels' means to within the transform's rounding (the DC's quantisation at 1/8)
+        luma = np.abs((reduced - box) @ LUMA[: box.shape[2]] / LUMA[: box.shape[2]].sum())
+        assert luma.mean() < 0.4 and luma.max() <= 6, (s, luma.mean(), luma.max())
+        # colour: libjpeg interpolates the YCbCr half-resolution colour planes where GDAL's decode was averaged,
+        # so a few px on sharp colour edges differ
+        colour = np.abs(reduced - box)
+        assert colour.mean() < 1.2 and np.percentile(colour, 99) <= 8 and colour.max() <= 40, (s, colour.max())
+    assert jpeg.scale_for(7.9) == 4 and jpeg.scale_for(1.9) == 1
+
+
+def test_what_it_leaves_to_gdal(tmp_path: Path, rgb: np.ndarray) -> None:
+    assert JpegBlocks.open(_write(tmp_path / "deflate.tif", rgb, compress="deflate")) is None
+    wide = rgb.astype(np.uint16) * 257
+    with rasterio.open(
+        tmp_path / "16.tif", "w", driver="GTiff", width=WIDTH, height=HEIGHT, count=3, dtype="uint16"
+    ) as dst:
+        dst.write(np.moveaxis(wide, 2, 0))
+    assert JpegBlocks.open(tmp_path / "16.tif") is None
+    banded = _write(tmp_path / "band.tif", rgb, **TILED, interleave="band")  # a JPEG stream per band
+    assert JpegBlocks.open(banded) is None
+    assert JpegBlocks.open(tmp_path / "missing.tif") is None
+    odd = _write(tmp_path / "odd.tif", rgb[:, :2044], **TILED, photometric="ycbcr")
+    jpeg = JpegBlocks.open(odd)
+    assert jpeg is not None and jpeg.scale_for(8) == 4  # 2044 = 4 x 511: no 8 x 8 pixel is whole at its edge
+    with pytest.raises(ValueError):
+        jpeg.reduced(8)
+
+
+def test_a_cut_file_is_left_to_gdal(tmp_path: Path, rgb: np.ndarray) -> None:
+    path = _write(tmp_path / "f.tif", rgb, **TILED, photometric="ycbcr")
+    data = path.read_bytes()
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    jpeg = JpegBlocks.open(cut)
+    assert jpeg is not None
+    with pytest.raises(JpegBlockError, match="cut short"):
+        jpeg.reduced(8)
+    assert photo_io.read_reduced(cut, WIDTH // 8) is None  # GDAL fails it too
+    with pytest.raises(image_meta.InvalidImageError, match="corrupt or truncated"):
+        image_meta.inspect_image(cut)
+
+
+def test_the_readers_built_on_it_give_gdals_figures(tmp_path: Path, rgb: np.ndarray, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Working copy, upload check and preview of a JPEG-in-TIFF through the scaled decode, then through GDAL alone."""
+    big = np.tile(rgb[:320], (2, 4, 1))  # 8192 x 640: the upload check's cells are 16 px, two 8 x 8 blocks
+    path = _write(tmp_path / "f.tif", big, **TILED, photometric="ycbcr")
+    fast = photo_io.read_reduced(path, 1024), image_meta.inspect_image(path)["quality"], preview_jpeg(path, 256)
+    monkeypatch.setattr(photo_io, "read_jpeg_reduced", lambda *_: None)
+    monkeypatch.setattr(image_meta, "_scaled_block_means", lambda _: None)
+    monkeypatch.setattr(JpegBlocks, "open", classmethod(lambda cls, _: None))
+    slow = photo_io.read_reduced(path, 1024), image_meta.inspect_image(path)["quality"], preview_jpeg(path, 256)
+    (copy, size), (copy_gdal, size_gdal) = fast[0], slow[0]  # type: ignore[misc]
+    assert size == size_gdal == (8192, 640) and copy.shape == copy_gdal.shape == (80, 1024, 3)
+    diff = np.abs(copy.astype(int) - copy_gdal)  # BGR, as GDAL's, area-averaged (colour planes interpolated)
+    assert diff.mean() < 1.0 and np.percentile(diff, 99) <= 6
+    quality, quality_gdal = fast[1], slow[1]
+    assert quality["analysed_px"] == quality_gdal["analysed_px"] == [512, 40]
+    assert abs(quality["mean_brightness"] - quality_gdal["mean_brightness"]) < 0.3
+    assert abs(quality["sharpness"] / quality_gdal["sharpness"] - 1) < 0.02
+    assert hamming(quality["phash"], quality_gdal["phash"]) < DUPLICATE_BITS  # the same picture, by its own test
+    with Image.open(io.BytesIO(fast[2])) as a, Image.open(io.BytesIO(slow[2])) as b:
+        assert a.size == b.size == (256, 20)
+        assert np.abs(np.asarray(a).astype(int) - np.asarray(b)).mean() < 3  # both re-encoded as JPEG
