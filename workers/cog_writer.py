@@ -14,6 +14,8 @@ once, on every core, as the bands and overview rows are written.
 
 from __future__ import annotations
 
+import errno
+import os
 import struct
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -626,22 +628,51 @@ def _assemble(path: Path, levels: list[_Level], bigtiff: bool | None, progress: 
 
 
 def _copy_tiles(out: BinaryIO, source: _Source) -> int:
-    """Append ``source``'s tiles (each followed by its mask's) with their leaders and trailers; bytes written."""
+    """Append ``source``'s tiles (each followed by its mask's) with their leaders and trailers; bytes written.
+
+    A tile's bytes go from file to file inside the kernel (``os.copy_file_range``; ``out`` is flushed first and
+    left at its end): a 1.06 Gpx strip's 1.8 GB COG took 4.7 s copied through Python's buffers, 0.7-1.8 s so.
+    Where the kernel cannot (another OS, or a file system that refuses), through Python's buffers."""
     written = 0
     pairs = [source.image] if source.mask is None else [source.image, source.mask]
+    out.flush()
     with open(source.path, "rb") as f:
+        src, dst = f.fileno(), out.fileno()
         for t in range(len(source.image[0])):
             for offsets, counts in pairs:
-                count = int(counts[t])
+                count, offset = int(counts[t]), int(offsets[t])
                 if not count:
                     continue
-                f.seek(int(offsets[t]))
-                data = f.read(count)
-                if len(data) != count:
+                tail = os.pread(src, 4, offset + count - 4) if count >= 4 else os.pread(src, count, offset)
+                if len(tail) != min(4, count):
                     raise ValueError(f"{source.path.name} ends inside a tile")
-                out.write(struct.pack("<I", count) + data + data[-4:].rjust(4, b"\0"))
+                os.write(dst, struct.pack("<I", count))
+                _copy_range(src, dst, offset, count, source.path.name)
+                os.write(dst, tail.rjust(4, b"\0"))
                 written += count + 8
+    out.seek(0, os.SEEK_END)
     return written
+
+
+def _copy_range(src: int, dst: int, offset: int, count: int, name: str) -> None:
+    """``count`` bytes of file ``src`` from ``offset`` appended to file ``dst`` (at its position)."""
+    while count:
+        try:
+            done = os.copy_file_range(src, dst, count, offset) if hasattr(os, "copy_file_range") else -1
+        except OSError as exc:  # EXDEV, EINVAL, ENOSYS, EOPNOTSUPP: the kernel or file system cannot
+            if exc.errno not in (errno.EXDEV, errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+                raise
+            done = -1
+        if done < 0:
+            data = os.pread(src, count, offset)
+            if len(data) != count:
+                raise ValueError(f"{name} ends inside a tile")
+            while data:
+                data = data[os.write(dst, data) :]
+            return
+        if done == 0:
+            raise ValueError(f"{name} ends inside a tile")
+        offset, count = offset + done, count - done
 
 
 def _write_header(

@@ -13,9 +13,12 @@ short is found as a full decode finds it. NumPy, Pillow and (lazily) rasterio: t
 from __future__ import annotations
 
 import io
-from collections.abc import Iterator
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Hashable, Iterator
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 from PIL import JpegImagePlugin
@@ -31,75 +34,46 @@ class JpegBlockError(Exception):
     the file through GDAL instead, which says what is wrong with it."""
 
 
-class JpegBlocks:
-    """The blocks (tiles, or strips) of an 8-bit, pixel-interleaved JPEG-in-TIFF of one band or three (RGB, stored
-    as YCbCr or RGB); :meth:`open` answers None for any other TIFF."""
+class BlockCache:
+    """Decoded blocks, least recently used dropped past ``max_bytes``; shared by a process's threads (two threads
+    that miss the same block both decode it, harmlessly). A window's neighbours read most of its blocks again."""
 
-    def __init__(self, path: Path, src: DatasetReader) -> None:
-        self.path = path
-        self.width, self.height, self.bands = src.width, src.height, src.count
-        self.block_h, self.block_w = src.block_shapes[0]
-        item = src.get_tag_item
-        tables = item("JPEGTABLES", "TIFF", bidx=1)
-        # the tables' stream without its end-of-image marker, put in front of each block's without its start
-        self._tables = bytes.fromhex(tables)[:-2] if tables else b""
-        rows, cols = -(-self.height // self.block_h), -(-self.width // self.block_w)
-        self._blocks = [
-            (j, i, item(f"BLOCK_OFFSET_{i}_{j}", "TIFF", bidx=1), item(f"BLOCK_SIZE_{i}_{j}", "TIFF", bidx=1))
-            for j in range(rows)
-            for i in range(cols)
-        ]
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes, self.bytes = max_bytes, 0
+        self._blocks: OrderedDict[Hashable, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
 
-    @classmethod
-    def open(cls, path: str | Path) -> JpegBlocks | None:
-        """The blocks of the TIFF at ``path``, or None when it is not a JPEG-in-TIFF this class decodes."""
-        import rasterio  # GDAL: only for TIFF photos
+    def get(self, key: Hashable, make: Callable[[], np.ndarray]) -> np.ndarray:
+        with self._lock:
+            if (found := self._blocks.get(key)) is not None:
+                self._blocks.move_to_end(key)
+                return found
+        made = make()
+        with self._lock:
+            if key not in self._blocks:
+                self._blocks[key] = made
+                self.bytes += made.nbytes
+                while self.bytes > self.max_bytes and len(self._blocks) > 1:
+                    self.bytes -= self._blocks.popitem(last=False)[1].nbytes
+        return made
 
-        try:
-            with rasterio.open(path) as src:
-                jpeg = src.compression is not None and src.compression.name == "jpeg"
-                interleaved = src.count == 1 or (src.interleaving is not None and src.interleaving.name == "pixel")
-                if not jpeg or src.dtypes[0] != "uint8" or src.count not in (1, 3) or not interleaved:
-                    return None
-                return cls(Path(path), src)
-        except rasterio.errors.RasterioError:
-            return None
-
-    def scale_for(self, factor: float) -> int:
-        """The coarsest DCT scale (8, 4 or 2) at most ``factor`` that divides the width and the height (every
-        reduced pixel is then a whole square of source pixels), else 1: no scaled decode."""
-        return next((s for s in SCALES if s <= factor and self.width % s == 0 and self.height % s == 0), 1)
-
-    def blocks(self, scale: int) -> Iterator[tuple[int, int, np.ndarray]]:
-        """Each block decoded at 1/``scale`` (one of :data:`SCALES`, dividing the width and height), in file order,
-        as ``(row, col, pixels)``: its top-left in the reduced image and its ``(h, w, 3)`` RGB or ``(h, w)`` grey
-        uint8 cut to the image. Raises :class:`JpegBlockError`."""
-        if scale not in SCALES or self.width % scale or self.height % scale:
-            raise ValueError(f"scale {scale} is not one of {SCALES} dividing {self.width} x {self.height}")
-        mode = "RGB" if self.bands == 3 else "L"
-        size_h, size_w = self.height // scale, self.width // scale
-        with open(self.path, "rb") as f:
-            for j, i, offset, size in self._blocks:
-                if not offset or not size or int(offset) == 0:  # a sparse block: GDAL reads it as zeros
-                    raise JpegBlockError(f"block {i},{j} is not stored")
-                f.seek(int(offset))
-                data = f.read(int(size))
-                if len(data) != int(size) or data[:2] != b"\xff\xd8":
-                    raise JpegBlockError(f"block {i},{j} is cut short or not a JPEG stream")
-                row, col = j * self.block_h // scale, i * self.block_w // scale
-                h, w = min(self.block_h // scale, size_h - row), min(self.block_w // scale, size_w - col)
-                yield row, col, _decode(self._tables + data[2:] if self._tables else data, mode, scale)[:h, :w]
-
-    def reduced(self, scale: int) -> np.ndarray:
-        """The whole image at 1/``scale`` from :meth:`blocks`: ``(H/scale, W/scale, 3)`` RGB or ``(.., ..)`` grey."""
-        out = np.empty((self.height // scale, self.width // scale, *((3,) if self.bands == 3 else ())), np.uint8)
-        for row, col, pixels in self.blocks(scale):
-            out[row : row + pixels.shape[0], col : col + pixels.shape[1]] = pixels
-        return out
+    def clear(self) -> None:
+        with self._lock:
+            self._blocks.clear()
+            self.bytes = 0
 
 
-def _decode(stream: bytes, mode: str, scale: int) -> np.ndarray:
-    """One block's JPEG ``stream`` decoded at 1/``scale`` into ``mode``'s pixels."""
+# the blocks windows are read from, per process: as much as GDAL's block cache had (workers/__init__), which these
+# reads no longer fill
+BLOCK_CACHE = BlockCache(512 * 2**20)
+
+
+Decoder = Callable[[bytes, str, int], np.ndarray]  # (JPEG stream, "RGB" or "L", DCT scale) -> pixels
+
+
+def decode_pillow(stream: bytes, mode: str, scale: int) -> np.ndarray:
+    """One block's JPEG ``stream`` decoded at 1/``scale`` by Pillow's libjpeg(-turbo): ``(h, w, 3)`` RGB (``mode``
+    "RGB") or ``(h, w)`` grey ("L")."""
     try:
         with JpegImagePlugin.JpegImageFile(io.BytesIO(stream)) as img:
             full = img.size
@@ -109,3 +83,108 @@ def _decode(stream: bytes, mode: str, scale: int) -> np.ndarray:
             return np.asarray(img)
     except (OSError, SyntaxError, ValueError) as exc:
         raise JpegBlockError(f"a block does not decode ({exc})") from None
+
+
+class JpegBlocks:
+    """The blocks (tiles, or strips) of an 8-bit, pixel-interleaved JPEG-in-TIFF of one band or three (RGB, stored
+    as YCbCr or RGB); :meth:`open` answers None for any other TIFF. Pixels come as ``decode`` gives them: RGB from
+    :func:`decode_pillow` (the API's, no OpenCV), BGR from the workers' OpenCV decoder (``workers.photo_io``)."""
+
+    def __init__(self, path: Path, src: DatasetReader, decode: Decoder) -> None:
+        self.path, self._decode = path, decode
+        self.width, self.height, self.bands = src.width, src.height, src.count
+        self.block_h, self.block_w = src.block_shapes[0]
+        item = src.get_tag_item
+        tables = item("JPEGTABLES", "TIFF", bidx=1)
+        # the tables' stream without its end-of-image marker, put in front of each block's without its start
+        self._tables = bytes.fromhex(tables)[:-2] if tables else b""
+        self.rows, self.cols = -(-self.height // self.block_h), -(-self.width // self.block_w)
+        self._where = np.array(  # (rows, cols, 2): each block's offset and size in the file, 0 where not stored
+            [
+                [
+                    [int(item(f"BLOCK_{what}_{i}_{j}", "TIFF", bidx=1) or 0) for what in ("OFFSET", "SIZE")]
+                    for i in range(self.cols)
+                ]
+                for j in range(self.rows)
+            ],
+            np.int64,
+        ).reshape(self.rows, self.cols, 2)
+        stat = path.stat()
+        self._key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)  # the cache's: the same file, unchanged
+        self._mode = "RGB" if self.bands == 3 else "L"
+
+    @classmethod
+    def open(cls, path: str | Path, decode: Decoder = decode_pillow) -> JpegBlocks | None:
+        """The blocks of the TIFF at ``path``, decoded by ``decode``; None when it is not a JPEG-in-TIFF this class
+        decodes."""
+        import rasterio  # GDAL: only for TIFF photos
+
+        try:
+            with rasterio.open(path) as src:
+                jpeg = src.compression is not None and src.compression.name == "jpeg"
+                interleaved = src.count == 1 or (src.interleaving is not None and src.interleaving.name == "pixel")
+                if not jpeg or src.dtypes[0] != "uint8" or src.count not in (1, 3) or not interleaved:
+                    return None
+                return cls(Path(path), src, decode)
+        except (rasterio.errors.RasterioError, OSError):
+            return None
+
+    def scale_for(self, factor: float) -> int:
+        """The coarsest DCT scale (8, 4 or 2) at most ``factor`` that divides the width and the height (every
+        reduced pixel is then a whole square of source pixels), else 1: no scaled decode."""
+        return next((s for s in SCALES if s <= factor and self.width % s == 0 and self.height % s == 0), 1)
+
+    def _stream(self, f: BinaryIO, j: int, i: int) -> bytes:
+        """Block (row ``j``, column ``i``)'s JPEG stream, the shared tables spliced in."""
+        offset, size = (int(v) for v in self._where[j, i])
+        if offset == 0 or size == 0:  # a sparse block: GDAL reads it as zeros
+            raise JpegBlockError(f"block {i},{j} is not stored")
+        f.seek(offset)
+        data = f.read(size)
+        if len(data) != size or data[:2] != b"\xff\xd8":
+            raise JpegBlockError(f"block {i},{j} is cut short or not a JPEG stream")
+        return self._tables + data[2:] if self._tables else data
+
+    def _decoded(self, f: BinaryIO, j: int, i: int, scale: int) -> np.ndarray:
+        """Block (``j``, ``i``) at 1/``scale``, cut to the image."""
+        row, col = j * self.block_h // scale, i * self.block_w // scale
+        h = min(self.block_h // scale, self.height // scale - row)
+        w = min(self.block_w // scale, self.width // scale - col)
+        pixels = self._decode(self._stream(f, j, i), self._mode, scale)
+        if pixels.shape[0] < h or pixels.shape[1] < w:
+            raise JpegBlockError(f"block {i},{j} decodes to {pixels.shape[1]} x {pixels.shape[0]} px, not {w} x {h}")
+        return pixels[:h, :w]
+
+    def blocks(self, scale: int) -> Iterator[tuple[int, int, np.ndarray]]:
+        """Each block decoded at 1/``scale`` (one of :data:`SCALES`, dividing the width and height), in file order,
+        as ``(row, col, pixels)``: its top-left in the reduced image and its ``(h, w, 3)`` RGB or ``(h, w)`` grey
+        uint8 cut to the image. Raises :class:`JpegBlockError`."""
+        if scale not in SCALES or self.width % scale or self.height % scale:
+            raise ValueError(f"scale {scale} is not one of {SCALES} dividing {self.width} x {self.height}")
+        with open(self.path, "rb") as f:
+            for j in range(self.rows):
+                for i in range(self.cols):
+                    yield j * self.block_h // scale, i * self.block_w // scale, self._decoded(f, j, i, scale)
+
+    def reduced(self, scale: int) -> np.ndarray:
+        """The whole image at 1/``scale`` from :meth:`blocks`: ``(H/scale, W/scale, 3)`` RGB or ``(.., ..)`` grey."""
+        out = np.empty((self.height // scale, self.width // scale, *((3,) if self.bands == 3 else ())), np.uint8)
+        for row, col, pixels in self.blocks(scale):
+            out[row : row + pixels.shape[0], col : col + pixels.shape[1]] = pixels
+        return out
+
+    def window(self, r0: int, r1: int, c0: int, c1: int, cache: BlockCache = BLOCK_CACHE) -> np.ndarray:
+        """Rows ``r0:r1``, columns ``c0:c1`` (within the image) at full size, ``(h, w, 3)`` RGB or ``(h, w)`` grey,
+        from the blocks they touch, each decoded once while ``cache`` keeps it. Raises :class:`JpegBlockError`."""
+        out = np.empty((r1 - r0, c1 - c0, *((3,) if self.bands == 3 else ())), np.uint8)
+        if out.size == 0:
+            return out
+        with open(self.path, "rb") as f:
+            for j in range(r0 // self.block_h, (r1 - 1) // self.block_h + 1):
+                for i in range(c0 // self.block_w, (c1 - 1) // self.block_w + 1):
+                    block = cache.get((self._key, j, i), partial(self._decoded, f, j, i, 1))
+                    top, left = j * self.block_h, i * self.block_w
+                    y0, y1 = max(r0, top), min(r1, top + block.shape[0])
+                    x0, x1 = max(c0, left), min(c1, left + block.shape[1])
+                    out[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0] = block[y0 - top : y1 - top, x0 - left : x1 - left]
+        return out

@@ -3,6 +3,8 @@ the same raster (raster_io.translate_to_cog, the small mosaics' path) as the ora
 
 from __future__ import annotations
 
+import errno
+import os
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -299,3 +301,31 @@ def test_pooling_by_blocks_of_columns_equals_pooling_whole(monkeypatch: pytest.M
         assert all(np.array_equal(a, b) and a.dtype == b.dtype for a, b in zip(whole, blocks, strict=True))
         assert np.array_equal(cog_writer._by_columns(cog_writer._average, *whole), cog_writer._average(*whole))
     assert cog_writer._by_columns(cog_writer._average, sums, counts).shape == (5, 51, 3)
+
+
+def test_tiles_copied_by_python_when_the_kernel_cannot_are_the_same_bytes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The COG's tiles go from band to COG by ``os.copy_file_range``; where it copies a tile in pieces, or fails
+    (another file system: EXDEV), the same file comes out."""
+    rgb, mask, index = scene(1300, 1100)
+
+    def cog(name: str) -> bytes:
+        folder = tmp_path / name
+        folder.mkdir()
+        mosaic, _ = assemble(folder, *write_bands(folder, rgb, mask, index, "deflate"), (1300, 1100), "deflate")
+        return mosaic.read_bytes()
+
+    kernel = cog("kernel")
+    real = os.copy_file_range
+    monkeypatch.setattr(os, "copy_file_range", lambda src, dst, count, offset: real(src, dst, min(count, 999), offset))
+    pieces = cog("pieces")
+
+    def refuse(*_: object) -> int:
+        raise OSError(errno.EXDEV, "cross-device")
+
+    monkeypatch.setattr(os, "copy_file_range", refuse)
+    for other in (pieces, cog("python")):  # the same but the time written ("YYYY:MM:DD HH:MM:SS")
+        assert len(other) == len(kernel)
+        differ = np.flatnonzero(np.frombuffer(other, np.uint8) != np.frombuffer(kernel, np.uint8))
+        assert differ.size == 0 or differ.max() - differ.min() < 19

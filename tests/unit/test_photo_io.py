@@ -47,7 +47,12 @@ def test_tiff_windows_and_reduced_copies(tmp_path: Path, frame: np.ndarray, opti
     reader = WindowReader(path)
     assert reader.shape == (HEIGHT, WIDTH, 3)
     for rows, cols in ((slice(0, 37), slice(1000, 1511)), (slice(150, 200), slice(2900, 3000))):
-        assert np.array_equal(reader[rows, cols], whole[rows, cols])
+        if options["compress"] != "jpeg":
+            assert np.array_equal(reader[rows, cols], whole[rows, cols])
+        else:  # libjpeg-turbo's decode (tests/unit/test_tiff_jpeg.py): the same brightness as GDAL's libjpeg 9,
+            # whose colour differs on sharp colour edges (it interpolates the half-resolution chroma otherwise)
+            diff = reader[rows, cols].astype(float) - whole[rows, cols]
+            assert np.abs(diff @ [0.114, 0.587, 0.299]).mean() < 0.5 and np.abs(diff).mean() < 3
     reduced, size = read_reduced(path, 750)  # type: ignore[misc]
     assert size == (WIDTH, HEIGHT) and reduced.shape[:2][::-1] == reduced_size(WIDTH, HEIGHT, 750) == (750, 50)
     expected = cv2.resize(whole, (750, 50), interpolation=cv2.INTER_AREA).astype(int)

@@ -1,6 +1,7 @@
-"""A JPEG-in-TIFF's blocks decoded at a DCT scale (``workers.tiff_jpeg``) against GDAL's full decode, area-averaged:
-tiled and striped, YCbCr- and RGB-coded, one band; what it leaves to GDAL; and the three readers built on it (the
-working copies, the upload check, the previews) giving GDAL's figures."""
+"""A JPEG-in-TIFF's blocks decoded by libjpeg-turbo (``workers.tiff_jpeg``): windows at full size against Pillow's
+decode of the whole file (libtiff and the same libjpeg-turbo), reduced copies at a DCT scale against GDAL's full decode
+area-averaged: tiled and striped, YCbCr- and RGB-coded, one band; what it leaves to GDAL; the block cache; and the
+readers built on it (the working copies, the upload check, the previews) giving GDAL's figures."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import workers.image_meta as image_meta
 import workers.photo_io as photo_io
 from tests.scenes import make_texture
 from workers.photo_check import DUPLICATE_BITS, hamming, preview_jpeg
-from workers.tiff_jpeg import JpegBlockError, JpegBlocks
+from workers.tiff_jpeg import BlockCache, JpegBlockError, JpegBlocks
 
 WIDTH, HEIGHT = 2048, 328  # a reduced strip frame: the edge tiles are partial, 328 = 8 x 41 rows
 TILED = {"compress": "jpeg", "jpeg_quality": 90, "tiled": True, "blockxsize": 256, "blockysize": 256}  # as the strips
@@ -89,6 +90,44 @@ def test_scaled_blocks_are_the_area_average_of_gdals_decode(tmp_path: Path, rgb:
         colour = np.abs(reduced - box)
         assert colour.mean() < 1.2 and np.percentile(colour, 99) <= 8 and colour.max() <= 40, (s, colour.max())
     assert jpeg.scale_for(7.9) == 4 and jpeg.scale_for(1.9) == 1
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {**TILED, "photometric": "ycbcr"},
+        {**TILED, "photometric": "rgb"},
+        {"compress": "jpeg", "jpeg_quality": 90, "photometric": "ycbcr", "tiled": False},  # strips of 8 or 16 rows
+        {**TILED, "grey": True},
+    ],
+    ids=["tiled-ycbcr", "tiled-rgb", "striped-ycbcr", "tiled-grey"],
+)
+def test_windows_are_the_whole_decode_cut(tmp_path: Path, rgb: np.ndarray, options: dict) -> None:
+    """Windows across block edges, at the image's edges and over all of it, read through the cache, equal the
+    same libjpeg-turbo's decode of the whole file to the bit (Pillow reads JPEG-in-TIFF through libtiff), in
+    ``WindowReader``'s BGR too."""
+    options = dict(options)
+    grey = options.pop("grey", False)
+    path = _write(tmp_path / "f.tif", rgb[..., 1] if grey else rgb, **options)
+    with Image.open(path) as img:
+        whole = np.asarray(img)
+    jpeg = JpegBlocks.open(path)
+    assert jpeg is not None
+    cache = BlockCache(40 * 256 * 256 * 3)  # 40 tiles: blocks are dropped and decoded again on the way
+    reader = photo_io.WindowReader(path)
+    windows = [
+        (0, 37, 1000, 1511),
+        (250, 328, 1990, 2048),
+        (0, HEIGHT, 0, WIDTH),
+        (255, 257, 0, WIDTH),
+        (17, 300, 3, 5),
+    ]
+    for r0, r1, c0, c1 in windows * 2:
+        assert np.array_equal(jpeg.window(r0, r1, c0, c1, cache), whole[r0:r1, c0:c1])
+        bgr = whole[r0:r1, c0:c1, ::-1] if not grey else np.repeat(whole[r0:r1, c0:c1, None], 3, axis=2)
+        assert np.array_equal(reader[r0:r1, c0:c1], bgr)
+    assert 0 < cache.bytes <= cache.max_bytes
+    assert jpeg.window(5, 5, 0, 10, cache).shape[:2] == (0, 10)
 
 
 def test_what_it_leaves_to_gdal(tmp_path: Path, rgb: np.ndarray) -> None:
