@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -54,6 +55,15 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     # with two of them leaves only those to redo, and the tie points come out the same
     pairs = ws.load_stage_report("match_strips")
     assert pairs is not None and pairs["parts"]["count"] == pairs["pairs_tried"] >= 5
+    # candidates GPS put too far apart on the strip were left out (gap 4 and 5 at 65 %: 1.4 and 1.75 frames apart),
+    # and only pairs whose ground does not meet
+    index = {path.name: k for k, path in enumerate(strip.paths)}
+    assert sorted(pairs["pairs_distant"]) == [
+        [strip.paths[a].name, strip.paths[b].name] for a, b in ((0, 4), (0, 5), (1, 5))
+    ]
+    for a, b in pairs["pairs_distant"]:
+        outlines = (strip.corners_ground(index[name]).astype(np.float32) for name in (a, b))
+        assert cv2.intersectConvexConvex(*outlines)[0] == 0
     before = {p.name: dict(np.load(p)) for p in sorted((ws.root / "matches").glob("pair_*.npz"))}
     records = sorted((ws.root / "parts" / "match_strips").glob("part_*.json"))
     kept = {p: p.stat().st_mtime_ns for p in records[:1] + records[3:]}

@@ -21,6 +21,7 @@ from workers.algorithms.strips import (
     build_tracks,
     carry_ties,
     coarsest_level,
+    distant_pairs,
     filter_ties,
     fine_tie_points,
     open_windows,
@@ -244,3 +245,22 @@ def test_fine_tie_points_on_the_gpu_match_the_cpu(
     assert gpu.counts == cpu.counts
     assert np.array_equal(gpu.points_a, cpu.points_a)
     assert np.abs(gpu.points_b - cpu.points_b).max() < 1e-3
+
+
+def test_pairs_too_far_apart_on_the_strip_are_predicted_from_one_pair() -> None:
+    """A straight strip of 1000 x 100 px frames, 50 m of GPS a frame and 45 px (55 % overlap) between neighbours,
+    turned 0.3 degrees in the frames: gap 2 overlaps (90 px < 100), gap 3 does not (135 px) and is distant past the
+    margin (1.25 x 100 px); a crossing line's pairs never are; a degenerate reference leaves every pair in."""
+    n, size = 10, (1000, 100)
+    positions = np.array([[0.0, 50.0 * k] for k in range(n)] + [[400.0, 0.0], [800.0, 0.0]])  # 10, 11: across it
+    angle = np.radians(0.3)
+    step = 45 * np.array([np.sin(angle), -np.cos(angle)])  # where a's centre lies in b, from b's centre
+    H = np.array([[1.0, 0.0, step[0]], [0.0, 1.0, step[1]], [0.0, 0.0, 1.0]])
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, min(n, i + 7))] + [(0, 10), (5, 11), (10, 11)]
+    distant = distant_pairs(pairs, positions, size, (4, 5), H)
+    assert distant == [(i, j) for i, j in pairs if j < n and j - i >= 3]
+    assert distant_pairs(pairs, positions, size, (4, 5), H, margin=1.4) == [
+        (i, j) for i, j in pairs if j < n and j - i >= 4
+    ]
+    assert distant_pairs(pairs, positions, size, (4, 5), np.eye(3)) == []  # no shift: no scale
+    assert distant_pairs(pairs, np.zeros_like(positions), size, (4, 5), H) == []  # no GPS distance

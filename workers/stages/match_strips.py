@@ -24,6 +24,7 @@ from workers.algorithms.strips import (
     FramePyramid,
     build_pyramid,
     coarsest_level,
+    distant_pairs,
     fine_tie_points,
     register_coarse,
 )
@@ -36,6 +37,7 @@ from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 GREEN = 1  # the channel the strip method runs on (BGR index)
 
 
+STAGE = "match_strips"
 PART_UNIT = "pair"  # what a part is, in the progress
 # by (job folder, frame): the pyramids and window readers of the frames this process's pairs share
 _PYRAMIDS: RecentCache[FramePyramid] = RecentCache(32)
@@ -43,12 +45,48 @@ _READERS: RecentCache[WindowReader] = RecentCache(32)
 
 
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
-    """A part per candidate pair: flight order, plus GPS neighbours when every frame has a fix."""
+    """A part per candidate pair: flight order, plus GPS neighbours when every frame has a fix; with GPS, less the
+    pairs on the strip's line too far apart to overlap, scaled by registering one neighbouring pair here
+    (:func:`_distant`): at 55 % overlap, 25 of a 16-frame strip's 54 candidates, each of which took the coarse
+    registration's every attempt (1.7 s) to fail."""
     frames = ws.load_frames()
     with_gps = all(f.gps for f in frames)
     positions = local_metres(np.array([[f.gps["lat"], f.gps["lon"]] for f in frames if f.gps])) if with_gps else None
     pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
-    return [f"{frames[a].index:05d}_{frames[b].index:05d}" for a, b in pairs]
+    distant: list[tuple[int, int]] = []
+    reference: dict[str, Any] = {}
+    if positions is not None:
+        distant, reference = _distant(ws, cfg, frames, positions, pairs)
+    names = [[frames[a].name, frames[b].name] for a, b in distant]
+    ws.save_part_inputs(STAGE, {"distant_pairs": names, "reference": reference})
+    left_out = set(distant)
+    return [f"{frames[a].index:05d}_{frames[b].index:05d}" for a, b in pairs if (a, b) not in left_out]
+
+
+DISTANT_MARGIN = 1.25  # left out past this many times the shift at which two frames stop meeting (GPS, attitude)
+
+
+def _distant(
+    ws: JobWorkspace, cfg: MosaicConfig, frames: list[Frame], positions: np.ndarray, pairs: list[tuple[int, int]]
+) -> tuple[list[tuple[int, int]], dict[str, Any]]:
+    """The candidate ``pairs`` (indices into ``frames``) too far apart on the strip to overlap
+    (``distant_pairs``), scaled by the first of the neighbouring pairs nearest the strip's middle that registers
+    with the spread criterion met; none when none does. Also what the scale came from, for the report."""
+    middle = len(frames) // 2
+    neighbours = [(k, k + 1) for k in (middle, middle - 1, middle + 1) if 0 <= k < len(frames) - 1]
+    folder = str(Path(ws.root).resolve())
+    for a, b in neighbours:
+        pyramid_a, pyramid_b = (
+            _PYRAMIDS.get((folder, f.index), partial(_pyramid, ws, f)) for f in (frames[a], frames[b])
+        )
+        coarse = register_coarse(
+            pyramid_a, pyramid_b, min_spread=cfg.strip_min_spread, device=resolve_device(cfg.device)
+        )
+        if coarse.homography is not None and coarse.satisfied:
+            size = (frames[a].orig_width, frames[a].orig_height)
+            far = distant_pairs(pairs, positions, size, (a, b), coarse.homography, margin=DISTANT_MARGIN)
+            return far, {"pair": [frames[a].name, frames[b].name], "margin": DISTANT_MARGIN}
+    return [], {}
 
 
 def part_threads(cfg: MosaicConfig) -> int:
@@ -101,9 +139,13 @@ def finish(
         f"{names[r.pair[0]]}|{names[r.pair[1]]}": rec["detail"]
         for r, rec in zip(results, records.values(), strict=True)
     }
+    inputs = ws.load_part_inputs(STAGE)
     return {
         "pairs_tried": len(results),
         "pairs_accepted": sum(r.accepted for r in results),
+        # candidates left out: on the strip's line, GPS put them too far apart to overlap (scaled by "reference")
+        "pairs_distant": inputs.get("distant_pairs", []),
+        "distant_reference": inputs.get("reference", {}),
         "selection": "gps+order" if all(f.gps for f in frames) else "order",
         "device": resolve_device(cfg.device),
         "pairs": details,

@@ -34,6 +34,9 @@ from .homography import (
     refine_homography as refine_homography,
 )
 from .overlap import (
+    distant_pairs as distant_pairs,
+)
+from .overlap import (
     overlap_box as overlap_box,
 )
 from .overlap import (
