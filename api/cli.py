@@ -42,6 +42,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="pipeline option, e.g. --set working_max_px=1600 (repeatable)",
     )
+    process.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="run the stages' parts (frames, pairs, bands of the mosaic) on this many worker processes, a core each "
+        "(default 1: this process's threads)",
+    )
     return parser
 
 
@@ -138,7 +145,9 @@ def _process(args: argparse.Namespace) -> int:
         print(f"\r{stage:16s} {100 * fraction:5.1f}%  {detail:40s}", end="", file=sys.stderr, flush=True)
 
     try:
-        report = process_directory(args.directory, args.output, options, progress=report_progress)
+        report = process_directory(
+            args.directory, args.output, options, progress=report_progress, processes=args.processes
+        )
     except (PipelineError, ValueError) as exc:
         print(f"\nfotoskhema: error: {exc}", file=sys.stderr)
         return 1

@@ -3,11 +3,13 @@
 Run by hand from the repository root::
 
     .venv/bin/python bench/strips.py [--frames 40] [--size 75000 1800] [--options '{"...": ...}'] [--keep DIR]
+        [--processes N]
 
 Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD steps, vignetting, noisy GPS in a side
 ``gps.csv``; ``--render-processes`` at once) before the clock starts; with ``--keep DIR`` a strip rendered there
 before with the same arguments is used again (its truth pickled beside it) and the job folder is replaced. The
-pipeline then runs in a spawned child process (its own peak memory). Printed: stage times (and the rest, mostly the
+pipeline then runs in a spawned child process (its own peak memory; with ``--processes N`` its stages' parts on N
+worker processes of its own, whose memory the sampled peak adds in). Printed: stage times (and the rest, mostly the
 upload check of every frame) and frames per hour, peak RSS, disk (input, outputs, the job folder's peak size
 sampled while it ran), tie-point RMS, every frame corner's error against the truth after one similarity (ground px,
 which are native px), the frame centres' absolute error in metres against the GPS noise / sqrt(frames) the issue
@@ -54,15 +56,16 @@ def peak_rss_mib() -> float:
     return status_mib("VmHWM")
 
 
-def run_pipeline(src: str, out: str, options: dict[str, Any]) -> dict[str, Any]:
-    """Child: the whole pipeline; its report, wall time and peak memory (stages imported first, as a worker)."""
+def run_pipeline(src: str, out: str, options: dict[str, Any], processes: int = 1) -> dict[str, Any]:
+    """Child: the whole pipeline; its report, wall time and peak memory (stages imported first, as a worker); its
+    parts on ``processes`` worker processes when more than 1."""
     from workers.pipeline import pipeline_key, process_directory, stage_function, stage_names
 
     for stage in stage_names(pipeline_key("mosaic", options)):
         stage_function(stage)
     started = time.perf_counter()
     try:
-        report = process_directory(Path(src), Path(out), options)
+        report = process_directory(Path(src), Path(out), options, processes=processes)
     except Exception as exc:  # a benchmark reports the failure instead of dying
         return {"ok": False, "status": f"{type(exc).__name__}: {exc}", "seconds": time.perf_counter() - started}
     return {"ok": True, "seconds": time.perf_counter() - started, "peak_mib": peak_rss_mib(), "report": report}
@@ -109,11 +112,24 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
 
 
 def resident_mib(pid: int) -> float:
-    """A live process's resident set (VmRSS), MiB; 0 once it is gone (or a zombie, which has none)."""
+    """A live process's resident set (VmRSS) with its descendants' (the pipeline's part workers), MiB; 0 once it
+    is gone (or a zombie, which has none)."""
     try:
-        return status_mib("VmRSS", pid)
+        own = status_mib("VmRSS", pid)
     except (FileNotFoundError, RuntimeError):
         return 0.0
+    return own + sum(resident_mib(child) for child in children(pid))
+
+
+def children(pid: int) -> list[int]:
+    """A process's child processes (``/proc/<pid>/task/*/children``)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except (FileNotFoundError, ProcessLookupError, ValueError):
+            continue
+    return found
 
 
 def peak_by_stage(samples: list[tuple[float, float]], stage_seconds: dict[str, float], end: float) -> dict[str, int]:
@@ -250,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", type=Path, default=None, help="keep frames and job here (default: a temp dir)")
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
     parser.add_argument("--render-processes", type=int, default=2, help="frames rendered at once")
+    parser.add_argument(
+        "--processes", type=int, default=1, help="the pipeline's parts on this many worker processes (1: threads)"
+    )
     args = parser.parse_args(argv)
     from workers.workspace import JobWorkspace
 
@@ -259,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         strip = render(args, root)
         shutil.rmtree(root / "job", ignore_errors=True)
         options = {**DEFAULT_OPTIONS, **args.options}
-        result = in_child(str(root / "frames"), str(root / "job"), options, watch=root / "job")
+        result = in_child(str(root / "frames"), str(root / "job"), options, args.processes, watch=root / "job")
         if not result["ok"]:
             print(f"pipeline failed after {result['seconds']:.1f} s: {result['status']}")
             return 1
@@ -273,7 +292,9 @@ def main(argv: list[str] | None = None) -> int:
             "frames_used": len(report["frames_used"]),
             "seconds": result["seconds"],
             "frames_per_hour": 3600 * args.frames / result["seconds"],
-            "peak_mib": result["peak_mib"],
+            "peak_mib": result["peak_mib"],  # the pipeline's process; with part workers, the samples' peak too:
+            "peak_sampled_mib": round(max((mib for _, mib in result["memory_samples"]), default=0.0)),
+            "processes": args.processes,
             "peak_mib_by_stage": peak_by_stage(
                 result["memory_samples"], report["stage_seconds"], result["answered_at"]
             ),

@@ -6,7 +6,8 @@
 # Steps (default: tests ties kernels): tests = pytest tests/gpu; ties = the strip tie points' and the SIFT
 # pipeline's GPU tests (they need rasterio and pydantic: wheels in .whl/ are installed to /tmp/site first when
 # present: scripts/gpu_wheels.sh); kernels = bench/kernels.py --large; strips = bench/strips.py on STRIPS_FRAMES
-# (40) full-size frames with STRIPS_OPTIONS (JSON, e.g. '{"threads": 4}': strip pairs at once on the GPU).
+# (40) full-size frames with STRIPS_OPTIONS (JSON, e.g. '{"threads": 4}': strip pairs at once on the GPU) and its
+# parts on STRIPS_PROCESSES worker processes (1: threads).
 # Each step has its own time limit and writes its log to OUT_DIR, so one that fails or hangs leaves the others'.
 set -uo pipefail
 out=${1:?usage: gpu_check.sh OUT_DIR [STEP...]}
@@ -38,7 +39,8 @@ for step in $steps; do
     kernels) timeout 240 "$py" bench/kernels.py --large --json "$out/kernels.json" 2>&1 | tee "$out/kernels.txt" ;;
     strips)
         timeout "${STRIPS_TIMEOUT:-420}" "$py" bench/strips.py --frames "${STRIPS_FRAMES:-40}" \
-            --options "${STRIPS_OPTIONS:-{\}}" --render-processes "$(nproc)" --json "$out/strips.json" 2>&1 |
+            --options "${STRIPS_OPTIONS:-{\}}" --processes "${STRIPS_PROCESSES:-1}" --render-processes "$(nproc)" \
+            --json "$out/strips.json" 2>&1 |
             tee "$out/strips.txt"
         ;;
     *) echo "unknown step $step" ;;

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,14 @@ def test_cli_lists_subcommands_and_processes_a_folder(tmp_path: Path, capsys: py
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames_used"] == 3 and summary["crs"] == "EPSG:32615"
     assert (tmp_path / "out" / "mosaic.tif").exists() and (tmp_path / "out" / "report.json").exists()
+    # its parts on two worker processes: the same mosaic, the frames decoded elsewhere
+    args = ["process", str(tmp_path / "frames"), "-o", str(tmp_path / "out2"), "--set", "working_max_px=320"]
+    assert main([*args, "--processes", "2"]) == 0
+    assert json.loads(capsys.readouterr().out)["frames_used"] == 3
+    with rasterio.open(tmp_path / "out" / "mosaic.tif") as a, rasterio.open(tmp_path / "out2" / "mosaic.tif") as b:
+        assert np.array_equal(a.read(), b.read())
+    parts = json.loads((tmp_path / "out2" / "reports" / "load_images.json").read_text())["parts"]["by"]
+    assert parts and str(os.getpid()) not in {who.rsplit(":", 1)[1] for who in parts}
 
 
 def test_cli_explains_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import socket
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import rasterio
 
 from bench.strips import truth_errors
 from tests.strip_scenes import make_strip
@@ -100,3 +103,27 @@ def test_strip_tie_points_take_one_pair_at_a_time_on_a_gpu_unless_told(monkeypat
     monkeypatch.setattr(match_strips, "resolve_device", lambda requested: "cuda")
     assert match_strips.part_threads(MosaicConfig(mode="strip")) == 1
     assert match_strips.part_threads(MosaicConfig(mode="strip", threads=4)) == 4
+
+
+def test_parts_on_worker_processes_give_what_threads_give(tmp_path: Path) -> None:
+    """``process_directory(processes=2)``: every parted stage's parts done by spawned worker processes, none by this
+    one, and the same tie points and mosaic (its pixels and frame index) as this process's threads give."""
+    make_strip(tmp_path / "frames", 4, (4000, 400), overlap=0.65, gps_noise_m=1.0, seed=5)
+    options = {"mode": "strip", "ccd_segments": 32}
+    process_directory(tmp_path / "frames", tmp_path / "threads", options)
+    process_directory(tmp_path / "frames", tmp_path / "processes", options, processes=2)
+    here = f"{socket.gethostname()}:{os.getpid()}"
+    for stage in ("load_images", "match_strips", "compose_mosaic"):
+        report = JobWorkspace(tmp_path / "processes").load_stage_report(stage)
+        assert report is not None and here not in report["parts"]["by"] and len(report["parts"]["by"]) <= 2
+    for name in ("mosaic.tif", "frame_index.tif"):
+        with rasterio.open(tmp_path / "threads" / name) as a, rasterio.open(tmp_path / "processes" / name) as b:
+            assert np.array_equal(a.read(), b.read()) and np.array_equal(a.read_masks(1), b.read_masks(1))
+    matches = sorted((tmp_path / "threads" / "matches").glob("pair_*.npz"))
+    assert matches and [p.name for p in matches] == sorted(
+        p.name for p in (tmp_path / "processes" / "matches").glob("*.npz")
+    )
+    for path in matches:
+        theirs = np.load(tmp_path / "processes" / "matches" / path.name)
+        for key, values in np.load(path).items():
+            np.testing.assert_array_equal(theirs[key], values)
