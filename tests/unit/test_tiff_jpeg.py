@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import rasterio
 from PIL import Image
+from rasterio.windows import Window
 
 import workers.image_meta as image_meta
 import workers.photo_io as photo_io
@@ -99,8 +100,9 @@ def test_scaled_blocks_are_the_area_average_of_gdals_decode(tmp_path: Path, rgb:
         {**TILED, "photometric": "rgb"},
         {"compress": "jpeg", "jpeg_quality": 90, "photometric": "ycbcr", "tiled": False},  # strips of 8 or 16 rows
         {**TILED, "grey": True},
+        {**TILED, "photometric": "ycbcr", "JPEGTABLESMODE": 0},  # every block its own tables
     ],
-    ids=["tiled-ycbcr", "tiled-rgb", "striped-ycbcr", "tiled-grey"],
+    ids=["tiled-ycbcr", "tiled-rgb", "striped-ycbcr", "tiled-grey", "tiled-no-shared-tables"],
 )
 def test_windows_are_the_whole_decode_cut(tmp_path: Path, rgb: np.ndarray, options: dict) -> None:
     """Windows across block edges, at the image's edges and over all of it, read through the cache, equal the
@@ -146,6 +148,23 @@ def test_what_it_leaves_to_gdal(tmp_path: Path, rgb: np.ndarray) -> None:
     assert jpeg is not None and jpeg.scale_for(8) == 4  # 2044 = 4 x 511: no 8 x 8 pixel is whole at its edge
     with pytest.raises(ValueError):
         jpeg.reduced(8)
+
+
+def test_a_window_over_blocks_never_written_is_gdals(tmp_path: Path, rgb: np.ndarray) -> None:
+    """A sparse TIFF (blocks with no data left out, offset 0): such a window is read by GDAL, zeros where nothing was
+    written, the written block the same picture."""
+    path = tmp_path / "sparse.tif"
+    profile = {"driver": "GTiff", "width": 1024, "height": 512, "count": 3, "dtype": "uint8", "sparse_ok": True}
+    with rasterio.open(path, "w", **profile, **TILED, photometric="ycbcr") as dst:
+        dst.write(np.moveaxis(rgb[:256, :512], 2, 0), window=Window(0, 0, 512, 256))
+    jpeg = JpegBlocks.open(path)
+    assert jpeg is not None and jpeg.window(0, 256, 0, 512).shape == (256, 512, 3)  # the block written
+    with pytest.raises(JpegBlockError, match="not stored"):
+        jpeg.window(0, 512, 0, 1024)
+    window = photo_io.WindowReader(path)[0:512, 0:1024]
+    assert not window[256:].any() and not window[:, 512:].any()
+    diff = np.abs(window[:256, :512].astype(int) - rgb[:256, :512, ::-1])
+    assert diff.mean() < 6  # JPEG at quality 90 of a busy texture
 
 
 def test_a_cut_file_is_left_to_gdal(tmp_path: Path, rgb: np.ndarray) -> None:
