@@ -155,23 +155,29 @@ class JpegBlocks:
             raise JpegBlockError(f"block {i},{j} decodes to {pixels.shape[1]} x {pixels.shape[0]} px, not {w} x {h}")
         return pixels[:h, :w]
 
-    def blocks(self, scale: int) -> Iterator[tuple[int, int, np.ndarray]]:
-        """Each block decoded at 1/``scale`` (one of :data:`SCALES`, dividing the width and height), in file order,
-        as ``(row, col, pixels)``: its top-left in the reduced image and its ``(h, w, 3)`` RGB or ``(h, w)`` grey
-        uint8 cut to the image. Raises :class:`JpegBlockError`."""
+    def block_rows(self, scale: int) -> Iterator[tuple[int, np.ndarray]]:
+        """Each row of blocks decoded at 1/``scale`` (one of :data:`SCALES`, dividing the width and height), top to
+        bottom, as ``(row, pixels)``: its first row in the reduced image and its ``(h, W / scale, 3)`` RGB or
+        ``(h, W / scale)`` grey uint8 (a row of 256 px tiles of a 75000 px frame at 1/8: 0.9 MB). Raises
+        :class:`JpegBlockError`."""
         if scale not in SCALES or self.width % scale or self.height % scale:
             raise ValueError(f"scale {scale} is not one of {SCALES} dividing {self.width} x {self.height}")
+        channels = (3,) if self.bands == 3 else ()
         with open(self.path, "rb") as f:
             for j in range(self.rows):
+                row = j * self.block_h // scale
+                out = np.empty(
+                    (min(self.block_h // scale, self.height // scale - row), self.width // scale, *channels), np.uint8
+                )
                 for i in range(self.cols):
-                    yield j * self.block_h // scale, i * self.block_w // scale, self._decoded(f, j, i, scale)
+                    col = i * self.block_w // scale
+                    pixels = self._decoded(f, j, i, scale)
+                    out[:, col : col + pixels.shape[1]] = pixels
+                yield row, out
 
     def reduced(self, scale: int) -> np.ndarray:
-        """The whole image at 1/``scale`` from :meth:`blocks`: ``(H/scale, W/scale, 3)`` RGB or ``(.., ..)`` grey."""
-        out = np.empty((self.height // scale, self.width // scale, *((3,) if self.bands == 3 else ())), np.uint8)
-        for row, col, pixels in self.blocks(scale):
-            out[row : row + pixels.shape[0], col : col + pixels.shape[1]] = pixels
-        return out
+        """The whole image at 1/``scale`` (:meth:`block_rows`): ``(H/scale, W/scale, 3)`` RGB or ``(.., ..)`` grey."""
+        return np.concatenate([pixels for _, pixels in self.block_rows(scale)])
 
     def window(self, r0: int, r1: int, c0: int, c1: int, cache: BlockCache = BLOCK_CACHE) -> np.ndarray:
         """Rows ``r0:r1``, columns ``c0:c1`` (within the image) at full size, ``(h, w, 3)`` RGB or ``(h, w)`` grey,
