@@ -12,6 +12,7 @@ import socket
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -304,7 +305,12 @@ def _run_in_processes(
     finished = len(keys) - len(todo)
     try:
         for future in as_completed(futures):
-            future.result()  # a part's error is the stage's
+            try:
+                future.result()  # a part's error is the stage's
+            except BrokenProcessPool:
+                raise PipelineError(
+                    f"a worker process died during {stage} (out of memory, or killed); the parts done are kept"
+                ) from None
             finished += 1
             progress(finished / len(keys), f"{unit} {finished}/{len(keys)}")
     finally:

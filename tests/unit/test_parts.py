@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +61,23 @@ def test_parts_done_are_not_redone_and_the_outputs_are_the_same(tmp_path: Path) 
         np.testing.assert_array_equal(src.read(), before)
     summary = ws.load_stage_report("detect_features")["parts"]  # type: ignore[index]
     assert summary["count"] == 4 and sum(v["parts"] for v in summary["by"].values()) == 4
+
+
+def test_parts_on_worker_processes_report_what_went_wrong(tmp_path: Path) -> None:
+    """A part's error in a worker process is the stage's; a worker process that dies fails the stage with a
+    message, keeping the parts done; a part done is not done again."""
+    from tests.unit import part_probe
+    from workers.config import MosaicConfig
+    from workers.pipeline import PipelineError, parts_in_processes, run_parts
+    from workers.workspace import noop_progress
+
+    ws, cfg = JobWorkspace(tmp_path), MosaicConfig(threads=4)
+    with parts_in_processes(2):
+        run_parts(part_probe, "probe", ws, cfg, ["a", "b", "c"], noop_progress)
+        assert [ws.load_part("probe", k)["threads"] for k in "abc"] == [1, 1, 1]  # a part a core
+        assert all(str(os.getpid()) not in ws.load_part("probe", k)["_done_by"] for k in "abc")
+        with pytest.raises(ValueError, match="a bad part"):
+            run_parts(part_probe, "probe", ws, cfg, ["a", "bad"], noop_progress)
+    with parts_in_processes(2), pytest.raises(PipelineError, match="worker process died during probe"):
+        run_parts(part_probe, "probe", ws, cfg, ["d", "die", "e"], noop_progress)
+    assert ws.parts_done("probe") >= {"a", "b", "c"} and "die" not in ws.parts_done("probe")
