@@ -246,9 +246,10 @@ _PART_PROCESSES: ProcessPoolExecutor | None = None
 def parts_in_processes(processes: int) -> Iterator[None]:
     """Within it, the parts of every parted stage run in this process go to ``processes`` spawned worker processes,
     a part each at a time with one thread (``threads`` 1), as Celery's workers would take them: a process's
-    threads share one interpreter lock, and a part's Python between its array calls kept 16 threads from more
-    than about 2.4x one thread's speed on a 16-core host. Each worker holds its share of the block caches
-    (GDAL's, the JPEG blocks'), so that all of them hold what one process would. ``processes`` <= 1: no pool."""
+    threads share one interpreter lock (a part's Python between its array calls), one page-fault lock and GDAL's
+    block cache; 16 threads composed a strip only 2.4x faster than one on a 16-core host (not diagnosed further
+    there). Each worker holds its share of the block caches (GDAL's, the JPEG blocks'), so that all of them hold
+    what one process would. ``processes`` <= 1: no pool."""
     global _PART_PROCESSES
     if processes <= 1:
         yield
