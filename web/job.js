@@ -173,6 +173,8 @@ async function followJob(view, jobId, onJob, signature) {
     source.close();
     handle(event);
   });
+  // the job was deleted (here or elsewhere) while followed: nothing more will come, and no reconnecting
+  source.addEventListener("deleted", () => source.close());
   source.addEventListener("error", () => {
     // EventSource reconnects by itself after a dropped connection; only give up on it for good
     // when it is closed or keeps failing, and then read the job record instead.

@@ -78,13 +78,18 @@ def retry_job(job_id: JobId, db: DbDep, settings: SettingsDep, queue: QueueDep) 
 @router.get("/{job_id}/events")
 async def job_events(job_id: JobId, request: Request, db: DbDep, settings: SettingsDep) -> StreamingResponse:
     """Server-Sent Events: ``progress`` with the job JSON (its ``eta`` too) at every change, then ``end`` when it
-    finishes."""
+    finishes, or ``deleted`` (``{"id": ...}``) when it is deleted meanwhile: the stream ends cleanly either way (a
+    stream cut short is an error in the browser, and EventSource would reconnect)."""
     job_service.get_job(db, job_id)  # 404 before the stream starts
 
     async def stream() -> AsyncIterator[str]:
         last = ""
         while not await request.is_disconnected():
-            job = await asyncio.to_thread(job_service.get_job_live, db, job_id)
+            try:
+                job = await asyncio.to_thread(job_service.get_job_live, db, job_id)
+            except NotFoundError:
+                yield f'event: deleted\ndata: {{"id": {job_id}}}\n\n'
+                return
             data = job.model_dump_json()
             if JobStatus(job.status).finished:
                 yield f"event: end\ndata: {data}\n\n"

@@ -265,3 +265,17 @@ def test_retry_waits_until_a_cancelled_stage_has_stopped(client: TestClient, api
     with db.session() as s:  # the stage stopped: its heartbeat is cleared
         s.get(Job, job["id"]).heartbeat_at = None
     assert client.post(f"/api/jobs/{job['id']}/retry").status_code == 202
+
+
+def test_the_event_stream_of_a_job_deleted_while_followed_ends_cleanly(client: TestClient, frames: list[Path]) -> None:
+    """A job deleted while its events are followed (the viewer's delete button on a running job): the stream says
+    ``deleted`` and ends, rather than breaking off (an error in the browser, and EventSource reconnects)."""
+    job = client.post("/api/jobs", json={"flight_id": flight_with(client, frames)}).json()  # queued: never ends
+    with client.stream("GET", f"/api/jobs/{job['id']}/events") as stream:
+        lines = stream.iter_lines()
+        assert next(lines) == "event: progress"
+        assert client.delete(f"/api/jobs/{job['id']}").status_code == 204
+        rest = list(lines)  # to the stream's end, which comes
+    events = [line for line in rest if line.startswith("event: ")]
+    assert events[-1] == "event: deleted" and f'data: {{"id": {job["id"]}}}' in rest
+    assert client.get(f"/api/jobs/{job['id']}/events").status_code == 404
