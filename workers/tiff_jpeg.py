@@ -1,13 +1,15 @@
-"""The blocks of a JPEG-in-TIFF decoded at 1/2, 1/4 or 1/8 of their size by libjpeg's DCT scaling.
+"""The blocks of a JPEG-in-TIFF decoded by libjpeg(-turbo) itself: whole at 1/2, 1/4 or 1/8 of their size by the
+DCT, or by window at full size.
 
-GDAL decodes each JPEG block of a TIFF whole, whatever size is asked of it: a 135 MP aerial frame costs the same
-1.3-1.4 s at any reduction. libjpeg, asked for a scaled decode, inverse-transforms only the coarse coefficients;
-at 1/8 a block's pixel is its 8 x 8 px mean (the DC term). So the upload check, the previews and the working copies
-of aerial frames read the blocks' coded bytes themselves (where they lie and the tables they share come from GDAL's
-TIFF metadata: ``BLOCK_OFFSET_x_y``, ``BLOCK_SIZE_x_y``, ``JPEGTABLES``) and let Pillow's libjpeg decode them scaled:
-an 8x reduced copy of a 75000 x 1800 frame in a fifth of GDAL's time, within a level or two of GDAL's area average
-(the DC's quantisation). Every block's entropy-coded data is still decoded in full, so a block missing or cut
-short is found as a full decode finds it. NumPy, Pillow and (lazily) rasterio: the API's upload check uses it.
+GDAL decodes each JPEG block of a TIFF whole, whatever size is asked of it (a 135 MP aerial frame costs the same
+1.3-1.4 s at any reduction), and rasterio's wheel carries libjpeg 9, 6-8x slower than the libjpeg-turbo in Pillow
+and OpenCV. So the upload check, the previews and the working copies of aerial frames, and the windows compose
+and the fine tie points read, take the blocks' coded bytes themselves (where they lie and the tables they share
+come from GDAL's TIFF metadata: ``BLOCK_OFFSET_x_y``, ``BLOCK_SIZE_x_y``, ``JPEGTABLES``) and decode them: at 1/8
+a block's pixel is its 8 x 8 px mean (the DC term), within a level or two of GDAL's area average (the DC's
+quantisation); at full size the same pixels as libtiff with libjpeg-turbo. Every block's entropy-coded data is
+decoded in full, so a block missing or cut short is found as a full decode finds it, and left to GDAL. NumPy,
+Pillow and (lazily) rasterio: the API's upload check uses it, with Pillow's decoder; the workers pass OpenCV's.
 """
 
 from __future__ import annotations
@@ -188,7 +190,8 @@ class JpegBlocks:
         with open(self.path, "rb") as f:
             for j in range(r0 // self.block_h, (r1 - 1) // self.block_h + 1):
                 for i in range(c0 // self.block_w, (c1 - 1) // self.block_w + 1):
-                    block = cache.get((self._key, j, i), partial(self._decoded, f, j, i, 1))
+                    # keyed by the decoder too: Pillow's pixels are RGB, OpenCV's BGR
+                    block = cache.get((self._key, self._decode, j, i), partial(self._decoded, f, j, i, 1))
                     top, left = j * self.block_h, i * self.block_w
                     y0, y1 = max(r0, top), min(r1, top + block.shape[0])
                     x0, x1 = max(c0, left), min(c1, left + block.shape[1])

@@ -124,8 +124,13 @@ def test_windows_are_the_whole_decode_cut(tmp_path: Path, rgb: np.ndarray, optio
         (255, 257, 0, WIDTH),
         (17, 300, 3, 5),
     ]
+    opencv = JpegBlocks.open(path, photo_io.decode_bgr)  # BGR blocks, in the same cache as Pillow's RGB ones
+    assert opencv is not None
     for r0, r1, c0, c1 in windows * 2:
         assert np.array_equal(jpeg.window(r0, r1, c0, c1, cache), whole[r0:r1, c0:c1])
+        assert np.array_equal(
+            opencv.window(r0, r1, c0, c1, cache), whole[r0:r1, c0:c1, ::-1] if not grey else whole[r0:r1, c0:c1]
+        )
         bgr = whole[r0:r1, c0:c1, ::-1] if not grey else np.repeat(whole[r0:r1, c0:c1, None], 3, axis=2)
         assert np.array_equal(reader[r0:r1, c0:c1], bgr)
     assert 0 < cache.bytes <= cache.max_bytes
