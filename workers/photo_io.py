@@ -1,9 +1,10 @@
 """Reading a photo whole, reduced or by window, without decoding more of it than asked.
 
-JPEG and PNG go through OpenCV (a whole decode; EXIF orientation applied). TIFF goes through rasterio
-(GDAL), tile by tile or strip by strip: a reduced copy is averaged block by block and a window reads only
-the blocks it touches, so a 75000 x 1800 JPEG-in-TIFF aerial frame (135 MP, 405 MB decoded) is never held
-whole. Pixels come back as OpenCV does them: (H, W, 3) uint8 BGR.
+JPEG and PNG go through OpenCV (a whole decode; EXIF orientation applied). TIFF is read tile by tile or strip by
+strip: a reduced copy is averaged block by block and a window reads only the blocks it touches, so a 75000 x 1800
+JPEG-in-TIFF aerial frame (135 MP, 405 MB decoded) is never held whole. An 8-bit JPEG-in-TIFF's blocks are decoded
+by OpenCV's libjpeg-turbo (``workers.tiff_jpeg``: at a DCT scale for a reduced copy), any other TIFF through rasterio
+(GDAL). Pixels come back as OpenCV does them: (H, W, 3) uint8 BGR.
 """
 
 from __future__ import annotations
