@@ -67,6 +67,13 @@ def test_a_strip_is_registered_at_native_precision(tmp_path: Path) -> None:
     for a, b in pairs["pairs_distant"]:
         outlines = (strip.corners_ground(index[name]).astype(np.float32) for name in (a, b))
         assert cv2.intersectConvexConvex(*outlines)[0] == 0
+    # the others' overlaps as GPS predicts them (400 px frames 35 % apart: 260 px for neighbours, 120 two apart,
+    # -20 three apart), from which their coarse registration starts
+    predicted = ws.load_part_inputs("match_strips")["overlap_px"]
+    assert sorted(predicted) == sorted(ws.load_plan("match_strips"))
+    for key, thin in predicted.items():
+        gap = int(key.split("_")[1]) - int(key.split("_")[0])
+        assert thin == pytest.approx(400 * (1 - 0.35 * gap), abs=20), (key, thin)
     before = {p.name: dict(np.load(p)) for p in sorted((ws.root / "matches").glob("pair_*.npz"))}
     records = sorted((ws.root / "parts" / "match_strips").glob("part_*.json"))
     kept = {p: p.stat().st_mtime_ns for p in records[:1] + records[3:]}

@@ -15,6 +15,7 @@ from gpu_kernels.backend import cuda_available
 from tests.strip_scenes import SyntheticStrip, make_strip
 from workers.algorithms.mosaic.alignment import apply_homography
 from workers.algorithms.strips import (
+    CoarseOptions,
     FramePyramid,
     PairTies,
     build_pyramid,
@@ -22,6 +23,7 @@ from workers.algorithms.strips import (
     carry_ties,
     coarsest_level,
     distant_pairs,
+    feasible_levels,
     filter_ties,
     fine_tie_points,
     open_windows,
@@ -264,3 +266,13 @@ def test_pairs_too_far_apart_on_the_strip_are_predicted_from_one_pair() -> None:
     ]
     assert distant_pairs(pairs, positions, size, (4, 5), np.eye(3)) == []  # no shift: no scale
     assert distant_pairs(pairs, np.zeros_like(positions), size, (4, 5), H) == []  # no GPS distance
+
+
+def test_coarse_levels_start_where_the_predicted_overlap_can_hold_a_match() -> None:
+    """Frames two apart at 55 % overlap meet over 180 native px: 5.6 px at level 5 and 11 at level 4 cannot hold a
+    15 px NCC window and its search in both frames (18 px), 22 at level 3 can; neighbours (990 px) start at the
+    coarsest; an overlap too thin for any level gets the finest."""
+    assert feasible_levels([5, 4, 3], 180.0) == [3]
+    assert feasible_levels([3, 4, 5], 990.0) == [5, 4, 3]
+    assert feasible_levels([5, 4, 3], 10.0) == [3]
+    assert feasible_levels([5, 4, 3], 180.0, CoarseOptions(half_window=3)) == [4, 3]  # 10 level px needed

@@ -22,9 +22,10 @@ from gpu_kernels.backend import resolve_device
 from workers.algorithms.mosaic import candidate_pairs, local_metres
 from workers.algorithms.strips import (
     FramePyramid,
+    along_strip,
     build_pyramid,
     coarsest_level,
-    distant_pairs,
+    feasible_levels,
     fine_tie_points,
     register_coarse,
 )
@@ -47,31 +48,41 @@ _READERS: RecentCache[WindowReader] = RecentCache(32)
 def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     """A part per candidate pair: flight order, plus GPS neighbours when every frame has a fix; with GPS, less the
     pairs on the strip's line too far apart to overlap, scaled by registering one neighbouring pair here
-    (:func:`_distant`): at 55 % overlap, 25 of a 16-frame strip's 54 candidates, each of which took the coarse
-    registration's every attempt (1.7 s) to fail."""
+    (:func:`_along_strip`): at 55 % overlap, 25 of a 16-frame strip's 54 candidates, each of which took the coarse
+    registration's every attempt (1.7 s) to fail. The others' predicted overlap goes to their parts, which start
+    coarse to fine at the first level it can hold a match on (``feasible_levels``)."""
     frames = ws.load_frames()
     with_gps = all(f.gps for f in frames)
     positions = local_metres(np.array([[f.gps["lat"], f.gps["lon"]] for f in frames if f.gps])) if with_gps else None
     pairs = candidate_pairs(len(frames), positions, cfg.max_pair_gap, cfg.gps_neighbours, cfg.exhaustive_max_frames)
-    distant: list[tuple[int, int]] = []
+    placed: dict[tuple[int, int], tuple[float, float, float]] = {}
     reference: dict[str, Any] = {}
     if positions is not None:
-        distant, reference = _distant(ws, cfg, frames, positions, pairs)
-    names = [[frames[a].name, frames[b].name] for a, b in distant]
-    ws.save_part_inputs(STAGE, {"distant_pairs": names, "reference": reference})
-    left_out = set(distant)
-    return [f"{frames[a].index:05d}_{frames[b].index:05d}" for a, b in pairs if (a, b) not in left_out]
+        placed, reference = _along_strip(ws, cfg, frames, positions, pairs)
+    distant = {pair for pair, (shift, apart, _) in placed.items() if shift > DISTANT_MARGIN * apart}
+    key = {pair: f"{frames[pair[0]].index:05d}_{frames[pair[1]].index:05d}" for pair in pairs}
+    ws.save_part_inputs(
+        STAGE,
+        {
+            "distant_pairs": [[frames[a].name, frames[b].name] for a, b in pairs if (a, b) in distant],
+            "reference": reference,
+            # native px across the thinner side of each kept pair's predicted overlap (on the strip's line)
+            "overlap_px": {key[pair]: round(thin, 1) for pair, (_, _, thin) in placed.items() if pair not in distant},
+        },
+    )
+    return [key[pair] for pair in pairs if pair not in distant]
 
 
 DISTANT_MARGIN = 1.25  # left out past this many times the shift at which two frames stop meeting (GPS, attitude)
 
 
-def _distant(
+def _along_strip(
     ws: JobWorkspace, cfg: MosaicConfig, frames: list[Frame], positions: np.ndarray, pairs: list[tuple[int, int]]
-) -> tuple[list[tuple[int, int]], dict[str, Any]]:
-    """The candidate ``pairs`` (indices into ``frames``) too far apart on the strip to overlap
-    (``distant_pairs``), scaled by the first of the neighbouring pairs nearest the strip's middle that registers
-    with the spread criterion met; none when none does. Also what the scale came from, for the report."""
+) -> tuple[dict[tuple[int, int], tuple[float, float, float]], dict[str, Any]]:
+    """Where GPS puts the candidate ``pairs`` (indices into ``frames``) on the strip (``along_strip``: shift,
+    the shift at which frames stop meeting, the overlap's thinner side, px), scaled by the first of the neighbouring
+    pairs nearest the strip's middle that registers with the spread criterion met; none when none does. Also what
+    the scale came from, for the report."""
     middle = len(frames) // 2
     neighbours = [(k, k + 1) for k in (middle, middle - 1, middle + 1) if 0 <= k < len(frames) - 1]
     folder = str(Path(ws.root).resolve())
@@ -84,9 +95,9 @@ def _distant(
         )
         if coarse.homography is not None and coarse.satisfied:
             size = (frames[a].orig_width, frames[a].orig_height)
-            far = distant_pairs(pairs, positions, size, (a, b), coarse.homography, margin=DISTANT_MARGIN)
-            return far, {"pair": [frames[a].name, frames[b].name], "margin": DISTANT_MARGIN}
-    return [], {}
+            placed = along_strip(pairs, positions, size, (a, b), coarse.homography)
+            return placed, {"pair": [frames[a].name, frames[b].name], "margin": DISTANT_MARGIN}
+    return {}, {}
 
 
 def part_threads(cfg: MosaicConfig) -> int:
@@ -108,7 +119,11 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     device = resolve_device(cfg.device)
     folder = str(Path(ws.root).resolve())
     pyramid_a, pyramid_b = (_PYRAMIDS.get((folder, f.index), partial(_pyramid, ws, f)) for f in (fa, fb))
-    coarse = register_coarse(pyramid_a, pyramid_b, min_spread=cfg.strip_min_spread, device=device)
+    levels = sorted(set(pyramid_a.levels) & set(pyramid_b.levels), reverse=True)
+    thin = ws.load_part_inputs(STAGE).get("overlap_px", {}).get(key)
+    if thin is not None:  # GPS's prediction: no attempt on levels too coarse to hold a match across the overlap
+        levels = feasible_levels(levels, float(thin))
+    coarse = register_coarse(pyramid_a, pyramid_b, min_spread=cfg.strip_min_spread, levels=levels, device=device)
     detail: dict[str, Any] = {"level": coarse.level, "spread": round(coarse.spread, 3), "note": coarse.reason}
     if coarse.homography is None:
         return {"pair": PairRecord(i, j, 0, 0, False, "H", None).to_json(), "detail": detail}

@@ -10,6 +10,9 @@ from .coarse import (
     HarrisSetting as HarrisSetting,
 )
 from .coarse import (
+    feasible_levels as feasible_levels,
+)
+from .coarse import (
     register_coarse as register_coarse,
 )
 from .fine import (
@@ -32,6 +35,9 @@ from .fine import (
 )
 from .homography import (
     refine_homography as refine_homography,
+)
+from .overlap import (
+    along_strip as along_strip,
 )
 from .overlap import (
     distant_pairs as distant_pairs,

@@ -104,6 +104,16 @@ class CoarseOptions:
     prior_radius_px: float = 64.0  # with a prior homography: how far (native px) a match may lie from it
 
 
+def feasible_levels(levels: Sequence[int], thin_px: float, options: CoarseOptions = CoarseOptions()) -> list[int]:
+    """The ``levels`` (coarsest first) on which an overlap ``thin_px`` native px across its thinner side can hold a
+    match: a corner's NCC window and its sub-pixel search inside both frames, ``2 (half_window + SUBPIXEL_SEARCH)``
+    level px (18). A strip's frames two apart at 55 % overlap meet over 180 px: 5.6 px at level 5, 11 at level 4,
+    where every attempt failed, 22 at level 3. The finest level when none can."""
+    need = 2 * (options.half_window + SUBPIXEL_SEARCH)
+    ordered = sorted(levels, reverse=True)
+    return [level for level in ordered if thin_px / 2**level >= need] or ordered[-1:]
+
+
 def register_coarse(
     pyramid_a: FramePyramid,
     pyramid_b: FramePyramid,

@@ -72,6 +72,46 @@ def spread_along(
     return min(ratios), (extents[0], extents[1]), (overlaps[0], overlaps[1])
 
 
+def along_strip(
+    pairs: list[tuple[int, int]],
+    positions: np.ndarray,
+    size: tuple[int, int],
+    reference: tuple[int, int],
+    H_ref: np.ndarray,
+    same_line_deg: float = 20.0,
+) -> dict[tuple[int, int], tuple[float, float, float]]:
+    """Where GPS puts the ``pairs`` on the strip's line, scaled by one registered pair: ``(shift, apart, thin)`` px.
+
+    ``reference`` (frames a, b) and its homography ``H_ref`` (a px -> b px) give how many frame px a metre of GPS
+    displacement is (the shift of a's centre over the distance between the fixes) and in which direction of the
+    frame the strip moves. A pair of frames of ``size`` (width, height) px, both on that line (its displacement
+    within ``same_line_deg`` of the reference's, either way), is predicted ``shift`` px apart along it; two such
+    frames stop overlapping ``apart`` px apart, and their overlap is ``thin`` px across its thinner side (negative:
+    a gap). Pairs off the line (a crossing strip) are left out: their direction in the frame is not known from one
+    pair; so is every pair when the reference is degenerate. ``positions``: (n, 2) metres, by frame index."""
+    a, b = reference
+    step = positions[b] - positions[a]
+    metres = float(np.hypot(*step))
+    w, h = size
+    centre = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
+    moved = apply_homography(H_ref, centre)[0] - centre[0]  # where a's centre lies in b, from b's centre
+    pixels = float(np.hypot(*moved))
+    if metres <= 0 or pixels <= 0 or not np.isfinite(pixels):
+        return {}
+    ux, uy = np.abs(moved / pixels)
+    # two w x h frames t px apart along (ux, uy) overlap in (w - t ux) x (h - t uy): until t = apart
+    apart = min(w / ux if ux > 0 else np.inf, h / uy if uy > 0 else np.inf)
+    cos_line = np.cos(np.radians(same_line_deg))
+    found = {}
+    for i, j in pairs:
+        d = positions[j] - positions[i]
+        dist = float(np.hypot(*d))
+        if dist > 0 and abs(float(d @ step)) / (dist * metres) >= cos_line:
+            shift = dist * pixels / metres
+            found[(i, j)] = (shift, float(apart), float(min(w - shift * ux, h - shift * uy)))
+    return found
+
+
 def distant_pairs(
     pairs: list[tuple[int, int]],
     positions: np.ndarray,
@@ -81,33 +121,7 @@ def distant_pairs(
     margin: float = 1.25,
     same_line_deg: float = 20.0,
 ) -> list[tuple[int, int]]:
-    """The ``pairs`` that GPS says cannot overlap, scaled by one registered pair.
-
-    ``reference`` (frames a, b) and its homography ``H_ref`` (a px -> b px) give how many frame px a metre of GPS
-    displacement is (the shift of a's centre over the distance between the fixes) and in which direction of the
-    frame the strip moves. A pair of frames of ``size`` (width, height) px, both on that line (its displacement
-    within ``same_line_deg`` of the reference's, either way) is predicted that many px apart along it; it is
-    distant when that is more than ``margin`` x the shift at which two such frames stop overlapping.
-    Pairs off the line (a crossing strip) are never distant: their direction in the frame is not known from one
-    pair. ``positions``: (n, 2) metres, by frame index. None is distant when the reference is degenerate."""
-    a, b = reference
-    step = positions[b] - positions[a]
-    metres = float(np.hypot(*step))
-    w, h = size
-    centre = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
-    shift = apply_homography(H_ref, centre)[0] - centre[0]  # where a's centre lies in b, from b's centre
-    pixels = float(np.hypot(*shift))
-    if metres <= 0 or pixels <= 0 or not np.isfinite(pixels):
-        return []
-    direction = np.abs(shift / pixels)
-    # how far a w x h frame moves along that direction before it leaves its own place: while it overlaps, both
-    # |t ux| < w and |t uy| < h
-    extent = min(w / direction[0] if direction[0] > 0 else np.inf, h / direction[1] if direction[1] > 0 else np.inf)
-    cos_line = np.cos(np.radians(same_line_deg))
-    distant = []
-    for i, j in pairs:
-        d = positions[j] - positions[i]
-        dist = float(np.hypot(*d))
-        if dist > 0 and abs(float(d @ step)) / (dist * metres) >= cos_line and dist * pixels / metres > margin * extent:
-            distant.append((i, j))
-    return distant
+    """The ``pairs`` that GPS says cannot overlap (:func:`along_strip`): on the strip's line and more than ``margin``
+    x the shift at which two frames stop overlapping apart. Pairs off the line are never distant."""
+    placed = along_strip(pairs, positions, size, reference, H_ref, same_line_deg)
+    return [pair for pair in pairs if pair in placed and placed[pair][0] > margin * placed[pair][1]]
