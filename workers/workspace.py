@@ -12,6 +12,7 @@ import os
 import re
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -191,7 +192,7 @@ class JobWorkspace:
 
     def load_working_image(self, index: int, mmap: bool = False) -> np.ndarray:
         """``(H, W, 3) uint8`` BGR; memory-mapped on request, so windows cost only what they read."""
-        return _load_npy(self._working_image_file(index), mmap)
+        return load_npy(self._working_image_file(index), mmap)
 
     # -- detect_features ------------------------------------------------------------------------
     def _features_file(self, index: int) -> Path:
@@ -201,7 +202,7 @@ class JobWorkspace:
         _save_npz(self._features_file(index), points=points, descriptors=descriptors)
 
     def load_features(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        with np.load(self._features_file(index)) as data:
+        with load_npz(self._features_file(index)) as data:
             return data["points"], data["descriptors"]
 
     def save_tie_corners(self, index: int, corners: np.ndarray) -> None:
@@ -212,7 +213,7 @@ class JobWorkspace:
         return self._tie_corners_file(index).exists()
 
     def load_tie_corners(self, index: int) -> np.ndarray:
-        with np.load(self._tie_corners_file(index)) as data:
+        with load_npz(self._tie_corners_file(index)) as data:
             return np.asarray(data["corners"])
 
     def _tie_corners_file(self, index: int) -> Path:
@@ -235,12 +236,12 @@ class JobWorkspace:
         _save_npz(self._matches_file(pair), points_i=points_i, points_j=points_j, **indices)
 
     def load_matches(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        with np.load(self._matches_file(pair)) as data:
+        with load_npz(self._matches_file(pair)) as data:
             return data["points_i"], data["points_j"]
 
     def load_match_indices(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Feature indices ``(M,) int`` of a pair's tie points in frame i and frame j."""
-        with np.load(self._matches_file(pair)) as data:
+        with load_npz(self._matches_file(pair)) as data:
             return data["index_i"], data["index_j"]
 
     def load_pairs(self) -> list[PairRecord]:
@@ -300,7 +301,7 @@ class JobWorkspace:
         return self._native_image_file(index).exists()
 
     def load_native_image(self, index: int, mmap: bool = False) -> np.ndarray:
-        return _load_npy(self._native_image_file(index), mmap)
+        return load_npy(self._native_image_file(index), mmap)
 
     def remove_native_images(self) -> None:
         """Drop the full photos ``compose_mosaic`` decoded: the job's inputs keep them, at a tenth of the size."""
@@ -346,7 +347,7 @@ class JobWorkspace:
 
     def load_tie_points(self) -> np.ndarray:
         """(N, 3) float64 world points ``adjust_bundle`` saved."""
-        with np.load(self.root / _TIE_POINTS) as data:
+        with load_npz(self.root / _TIE_POINTS) as data:
             return np.asarray(data["points"])
 
     def save_ortho_surface(self, surface: GroundSurface | None) -> None:
@@ -365,7 +366,7 @@ class JobWorkspace:
         path = self.root / _ORTHO_SURFACE
         if not path.exists():
             return None
-        with np.load(path) as data:
+        with load_npz(path) as data:
             x0, y0, cell = (float(v) for v in data["origin"])
             return GroundSurface(np.asarray(data["heights"]), x0, y0, cell)
 
@@ -379,7 +380,7 @@ class JobWorkspace:
     def load_compose_image(self, index: int, mmap: bool = False) -> np.ndarray:
         """The image ``compose_mosaic`` warps: the undistorted ortho frame if there is one, else the working copy."""
         path = self._ortho_image_file(index)
-        return _load_npy(path, mmap) if path.exists() else self.load_working_image(index, mmap)
+        return load_npy(path, mmap) if path.exists() else self.load_working_image(index, mmap)
 
     # -- crack-survey jobs ------------------------------------------------------------------------
     def load_orientation(self) -> list[dict[str, Any]]:
@@ -411,7 +412,7 @@ class JobWorkspace:
         """The surface ``rectify_specimen`` wrote: heights and plane are all later stages need."""
         from workers.algorithms.specimen import PlaneFrame, Surface
 
-        with np.load(self._surface_file()) as data:
+        with load_npz(self._surface_file()) as data:
             return Surface(PlaneFrame(data["origin"], data["axes"]), data["height"], float(data["mm_per_px"]))
 
     def _rectified_file(self, step: int) -> Path:
@@ -428,14 +429,14 @@ class JobWorkspace:
     def load_photo_footprint(self, step: int) -> tuple[np.ndarray, float] | None:
         """``(h, w, 3) float32`` photo pixel footprint of load step ``step`` and its raster's mm per px (None
         when ``rectify_specimen`` wrote none)."""
-        with np.load(self._rectified_file(step)) as data:
+        with load_npz(self._rectified_file(step)) as data:
             if "footprint" not in data:
                 return None
             return data["footprint"], float(data["footprint_mm_per_px"])
 
     def load_rectified(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         """``(H, W, 3) uint8`` BGR rectified image and ``(H, W) bool`` mask of what the photos see."""
-        with np.load(self._rectified_file(step)) as data:
+        with load_npz(self._rectified_file(step)) as data:
             return data["image"], data["mask"]
 
     def _crack_mask_file(self, step: int) -> Path:
@@ -446,7 +447,7 @@ class JobWorkspace:
 
     def load_crack_mask(self, step: int) -> np.ndarray:
         """``(H, W) bool`` crack pixels of the rectified image of load step ``step``."""
-        return _load_npy(self._crack_mask_file(step))
+        return load_npy(self._crack_mask_file(step))
 
     def save_measured_cracks(self, step: int, cracks: list[Crack], summary: dict[str, Any]) -> None:
         """The cracks of load step ``step`` measured in mm (``measure_cracks``) and their totals."""
@@ -497,7 +498,7 @@ class JobWorkspace:
 
     def load_rectified_pair(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(left, right, valid_left, valid_right)`` as ``save_rectified_pair`` saved them."""
-        with np.load(self.root / _RECTIFIED) as data:
+        with load_npz(self.root / _RECTIFIED) as data:
             return data["left"], data["right"], data["valid_left"], data["valid_right"]
 
     def save_disparity_arrays(
@@ -508,7 +509,7 @@ class JobWorkspace:
 
     def load_disparity_arrays(self) -> dict[str, np.ndarray]:
         """``disparity``, ``dense``, ``filled``, ``confidence`` (H, W) as ``save_disparity_arrays`` saved them."""
-        with np.load(self.root / _DISPARITY_ARRAYS) as data:
+        with load_npz(self.root / _DISPARITY_ARRAYS) as data:
             return {name: data[name] for name in ("disparity", "dense", "filled", "confidence")}
 
     def disparity_path(self) -> Path:
@@ -694,7 +695,7 @@ class JobWorkspace:
         _save_npz(self._parts_dir(stage) / "arrays.npz", **arrays)
 
     def load_part_arrays(self, stage: str) -> dict[str, np.ndarray]:
-        with np.load(self._parts_dir(stage) / "arrays.npz") as data:
+        with load_npz(self._parts_dir(stage) / "arrays.npz") as data:
             return {name: data[name] for name in data.files}
 
     def compose_band_path(self, y: int, raw: bool = False) -> Path:
@@ -811,8 +812,25 @@ def _save_npy(path: Path, array: np.ndarray) -> None:
         np.save(tmp, np.ascontiguousarray(array))
 
 
-def _load_npy(path: Path, mmap: bool = False) -> np.ndarray:
-    return np.load(path, mmap_mode="r" if mmap else None)
+# CPython 3.11's AST constructor counts its recursion depth per interpreter, not per thread, and np.load parses every
+# .npy header (a .npz's members too) with ast.literal_eval: two threads loading at once can fail with "SystemError:
+# AST constructor recursion depth mismatch" (python/cpython#106905; seen once in CI, composing on two threads).
+# Every load of the job's arrays holds this lock: headers are a few dozen bytes, and the arrays read are small or
+# memory-mapped.
+NPY_LOCK = threading.RLock()
+
+
+def load_npy(path: Path, mmap: bool = False) -> np.ndarray:
+    """``np.load`` of a ``.npy`` under :data:`NPY_LOCK` (memory-mapped, read-only, with ``mmap``)."""
+    with NPY_LOCK:
+        return np.load(path, mmap_mode="r" if mmap else None)
+
+
+@contextmanager
+def load_npz(path: Path) -> Iterator[Any]:
+    """``np.load`` of a ``.npz``, held under :data:`NPY_LOCK` while its members are read."""
+    with NPY_LOCK, np.load(path) as data:
+        yield data
 
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:

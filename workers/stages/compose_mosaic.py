@@ -51,7 +51,7 @@ from workers.raster_io import (
     translate_to_cog,
 )
 from workers.records import Coverage, Frame
-from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress
+from workers.workspace import JobWorkspace, ProgressFn, atomic_path, load_npy, noop_progress
 
 STAGE = "compose_mosaic"
 _PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes from (native resolution)
@@ -119,7 +119,14 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     gains = {int(k): np.array(g, np.float64) for k, g in shared["gains"].items()}
     vignette = (float(shared["vignette"][0]), float(shared["vignette"][1]))
     sizes, to_frame = _working_geometry(ws)
-    image_of: Callable[[int], Any] = partial(ws.load_compose_image, mmap=True)
+    opened: dict[int, np.ndarray] = {}  # each frame's working copy memory-mapped once a part, not once a window
+
+    def working(k: int) -> np.ndarray:
+        if k not in opened:
+            opened[k] = ws.load_compose_image(k, mmap=True)
+        return opened[k]
+
+    image_of: Callable[[int], Any] = working
     if cfg.output_resolution == "native":
         frames = ws.load_composed_frames()
         to_frame = {k: _working_to_photo(frames[k]) @ M for k, M in to_frame.items()}
@@ -329,9 +336,7 @@ def _save_raw_band(
 def _raw_band(ws: JobWorkspace, y: int) -> tuple[np.ndarray, np.ndarray]:
     """The band of rows from ``y`` as :func:`_save_raw_band` wrote it, memory-mapped: (4, h, w) uint8 planes R, G,
     B and coverage, and the (h, w) uint16 frame index."""
-    return np.load(ws.compose_band_path(y, raw=True), mmap_mode="r"), np.load(
-        ws.index_band_path(y, raw=True), mmap_mode="r"
-    )
+    return load_npy(ws.compose_band_path(y, raw=True), mmap=True), load_npy(ws.index_band_path(y, raw=True), mmap=True)
 
 
 def _index_values(index: np.ndarray) -> np.ndarray:
