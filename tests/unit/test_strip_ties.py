@@ -18,6 +18,7 @@ from workers.algorithms.strips import (
     CoarseOptions,
     FramePyramid,
     PairTies,
+    along_strip,
     build_pyramid,
     build_tracks,
     carry_ties,
@@ -252,20 +253,21 @@ def test_fine_tie_points_on_the_gpu_match_the_cpu(
 def test_pairs_too_far_apart_on_the_strip_are_predicted_from_one_pair() -> None:
     """A straight strip of 1000 x 100 px frames, 50 m of GPS a frame and 45 px (55 % overlap) between neighbours,
     turned 0.3 degrees in the frames: gap 2 overlaps (90 px < 100), gap 3 does not (135 px) and is distant past the
-    margin (1.25 x 100 px); a crossing line's pairs never are; a degenerate reference leaves every pair in."""
+    margin (1.25 x 100 px); a crossing line's pairs are not placed; a degenerate reference places none. Two apart,
+    they meet over 10 px."""
     n, size = 10, (1000, 100)
     positions = np.array([[0.0, 50.0 * k] for k in range(n)] + [[400.0, 0.0], [800.0, 0.0]])  # 10, 11: across it
     angle = np.radians(0.3)
     step = 45 * np.array([np.sin(angle), -np.cos(angle)])  # where a's centre lies in b, from b's centre
     H = np.array([[1.0, 0.0, step[0]], [0.0, 1.0, step[1]], [0.0, 0.0, 1.0]])
     pairs = [(i, j) for i in range(n) for j in range(i + 1, min(n, i + 7))] + [(0, 10), (5, 11), (10, 11)]
-    distant = distant_pairs(pairs, positions, size, (4, 5), H)
-    assert distant == [(i, j) for i, j in pairs if j < n and j - i >= 3]
-    assert distant_pairs(pairs, positions, size, (4, 5), H, margin=1.4) == [
-        (i, j) for i, j in pairs if j < n and j - i >= 4
-    ]
-    assert distant_pairs(pairs, positions, size, (4, 5), np.eye(3)) == []  # no shift: no scale
-    assert distant_pairs(pairs, np.zeros_like(positions), size, (4, 5), H) == []  # no GPS distance
+    placed = along_strip(pairs, positions, size, (4, 5), H)
+    assert set(placed) == {(i, j) for i, j in pairs if j < n}  # the crossing line's pairs are not placed
+    assert placed[(4, 6)][0] == pytest.approx(90.0) and placed[(4, 6)][2] == pytest.approx(10.0, abs=0.01)
+    assert distant_pairs(placed) == [(i, j) for i, j in pairs if j < n and j - i >= 3]
+    assert distant_pairs(placed, margin=1.4) == [(i, j) for i, j in pairs if j < n and j - i >= 4]
+    assert along_strip(pairs, positions, size, (4, 5), np.eye(3)) == {}  # no shift: no scale
+    assert along_strip(pairs, np.zeros_like(positions), size, (4, 5), H) == {}  # no GPS distance
 
 
 def test_coarse_levels_start_where_the_predicted_overlap_can_hold_a_match() -> None:

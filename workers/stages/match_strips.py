@@ -25,6 +25,7 @@ from workers.algorithms.strips import (
     along_strip,
     build_pyramid,
     coarsest_level,
+    distant_pairs,
     feasible_levels,
     fine_tie_points,
     register_coarse,
@@ -59,7 +60,7 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     reference: dict[str, Any] = {}
     if positions is not None:
         placed, reference = _along_strip(ws, cfg, frames, positions, pairs)
-    distant = {pair for pair, (shift, apart, _) in placed.items() if shift > DISTANT_MARGIN * apart}
+    distant = set(distant_pairs(placed, DISTANT_MARGIN))
     key = {pair: f"{frames[pair[0]].index:05d}_{frames[pair[1]].index:05d}" for pair in pairs}
     ws.save_part_inputs(
         STAGE,

@@ -113,15 +113,8 @@ def along_strip(
 
 
 def distant_pairs(
-    pairs: list[tuple[int, int]],
-    positions: np.ndarray,
-    size: tuple[int, int],
-    reference: tuple[int, int],
-    H_ref: np.ndarray,
-    margin: float = 1.25,
-    same_line_deg: float = 20.0,
+    placed: dict[tuple[int, int], tuple[float, float, float]], margin: float = 1.25
 ) -> list[tuple[int, int]]:
-    """The ``pairs`` that GPS says cannot overlap (:func:`along_strip`): on the strip's line and more than ``margin``
-    x the shift at which two frames stop overlapping apart. Pairs off the line are never distant."""
-    placed = along_strip(pairs, positions, size, reference, H_ref, same_line_deg)
-    return [pair for pair in pairs if pair in placed and placed[pair][0] > margin * placed[pair][1]]
+    """Of the pairs :func:`along_strip` placed, those that cannot overlap: more than ``margin`` x the shift at which
+    two frames stop overlapping apart (the margin for GPS noise and attitude). Pairs off the line are never in it."""
+    return [pair for pair, (shift, apart, _) in placed.items() if shift > margin * apart]
