@@ -9,7 +9,8 @@ Frames are rendered by ``tests/strip_scenes.make_strip`` (JPEG-in-TIFF, CCD step
 ``gps.csv``; ``--render-processes`` at once) before the clock starts; with ``--keep DIR`` a strip rendered there
 before with the same arguments is used again (its truth pickled beside it) and the job folder is replaced. The
 pipeline then runs in a spawned child process (its own peak memory; with ``--processes N`` its stages' parts on N
-worker processes of its own, whose memory the sampled peak adds in). Printed: stage times (and the rest, mostly the
+worker processes of its own, whose memory the sampled peaks add in: resident sets summed, and proportional sets,
+which count the pages the processes share once in all). Printed: stage times (and the rest, mostly the
 upload check of every frame) and frames per hour, peak RSS, disk (input, outputs, the job folder's peak size
 sampled while it ran), tie-point RMS, every frame corner's error against the truth after one similarity (ground px,
 which are native px), the frame centres' absolute error in metres against the GPS noise / sqrt(frames) the issue
@@ -83,7 +84,7 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, args))
     peak = [0]
-    memory: list[tuple[float, float]] = []  # (seconds since start, the child's resident MiB)
+    memory: list[tuple[float, float, float]] = []  # (seconds since start, the child's tree's resident, PSS MiB)
     done = threading.Event()
 
     clock = time.perf_counter()
@@ -91,7 +92,8 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
     def sample() -> None:
         while not done.wait(2.0):
             peak[0] = max(peak[0], folder_bytes(watch) if watch and watch.exists() else 0)
-            memory.append((time.perf_counter() - clock, resident_mib(proc.pid or 0)))
+            pid = proc.pid or 0
+            memory.append((time.perf_counter() - clock, resident_mib(pid), proportional_mib(pid)))
 
     sampler = threading.Thread(target=sample, daemon=True)
     proc.start()
@@ -113,12 +115,23 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
 
 def resident_mib(pid: int) -> float:
     """A live process's resident set (VmRSS) with its descendants' (the pipeline's part workers), MiB; 0 once it
-    is gone (or a zombie, which has none)."""
+    is gone (or a zombie, which has none). Pages the processes share (libraries, mapped files) count once in each."""
     try:
         own = status_mib("VmRSS", pid)
     except (FileNotFoundError, RuntimeError):
         return 0.0
     return own + sum(resident_mib(child) for child in children(pid))
+
+
+def proportional_mib(pid: int) -> float:
+    """A live process's proportional set (``Pss`` of ``/proc/<pid>/smaps_rollup``: each page it shares with n
+    processes counted 1/n) with its descendants', MiB: the host memory the process tree holds."""
+    try:
+        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
+    except (FileNotFoundError, ProcessLookupError, PermissionError):
+        return 0.0
+    own = next((int(line.split()[1]) / 1024 for line in text.splitlines() if line.startswith("Pss:")), 0.0)
+    return own + sum(proportional_mib(child) for child in children(pid))
 
 
 def children(pid: int) -> list[int]:
@@ -132,7 +145,9 @@ def children(pid: int) -> list[int]:
     return found
 
 
-def peak_by_stage(samples: list[tuple[float, float]], stage_seconds: dict[str, float], end: float) -> dict[str, int]:
+def peak_by_stage(
+    samples: list[tuple[float, float, float]], stage_seconds: dict[str, float], end: float
+) -> dict[str, int]:
     """Each stage's peak resident MiB from the samples, the stages placed end to end back from ``end``, when the
     pipeline answered (what it spends outside its stages falls before the first)."""
     ends = {}
@@ -140,7 +155,7 @@ def peak_by_stage(samples: list[tuple[float, float]], stage_seconds: dict[str, f
         ends[name] = (end - seconds, end)
         end -= seconds
     return {
-        name: round(max((mib for t, mib in samples if start <= t <= stop), default=0.0))
+        name: round(max((mib for t, mib, _ in samples if start <= t <= stop), default=0.0))
         for name, (start, stop) in reversed(list(ends.items()))
     }
 
@@ -293,7 +308,9 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": result["seconds"],
             "frames_per_hour": 3600 * args.frames / result["seconds"],
             "peak_mib": result["peak_mib"],  # the pipeline's process; with part workers, the samples' peak too:
-            "peak_sampled_mib": round(max((mib for _, mib in result["memory_samples"]), default=0.0)),
+            "peak_sampled_mib": round(max((mib for _, mib, _ in result["memory_samples"]), default=0.0)),
+            # the same samples' proportional set: shared pages (libraries, mapped files) counted once in all
+            "peak_pss_mib": round(max((pss for _, _, pss in result["memory_samples"]), default=0.0)),
             "processes": args.processes,
             "peak_mib_by_stage": peak_by_stage(
                 result["memory_samples"], report["stage_seconds"], result["answered_at"]

@@ -51,6 +51,15 @@ def keep_freed_memory() -> bool:
     return bool(mallopt(-3, MALLOC_MMAP_THRESHOLD) and mallopt(-1, MALLOC_TRIM_THRESHOLD))  # M_MMAP_, M_TRIM_
 
 
+def release_freed_memory() -> bool:
+    """Give the memory freed in this process back to the system (glibc's ``malloc_trim``: the free pages inside its
+    heaps too, not only at their top); False where libc is not glibc."""
+    try:
+        return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
+
+
 def ordered_map(fn: Callable[[T], R], items: Sequence[T], threads: int, progress: ProgressFn, unit: str) -> list[R]:
     """``[fn(x) for x in items]`` on ``threads`` threads, reporting "unit k/n" as results arrive.
 

@@ -22,7 +22,8 @@ from typing import Any
 from core.kinds import JobKind
 from workers.algorithms.geometry import Camera
 from workers.config import build_config
-from workers.parallel import ordered_map, thread_count
+from workers.parallel import ordered_map, release_freed_memory, thread_count
+from workers.tiff_jpeg import BLOCK_CACHE
 from workers.workspace import JobWorkspace, ProgressFn, noop_progress
 
 
@@ -216,7 +217,7 @@ def run_parts(
     restart) is skipped."""
     done = ws.parts_done(stage)
     todo = [key for key in keys if key not in done]
-    if _PART_PROCESSES is not None and len(todo) > 1:
+    if _PART_PROCESSES > 1 and len(todo) > 1:
         _run_in_processes(_PART_PROCESSES, module, stage, ws, cfg, keys, todo, progress)
         return
     threads = module.part_threads(cfg) if hasattr(module, "part_threads") else thread_count(cfg.threads)
@@ -239,7 +240,7 @@ def run_one_part(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, key
 
 # -- parts on worker processes (process_directory's ``processes``) ----------------------------------------------
 
-_PART_PROCESSES: ProcessPoolExecutor | None = None
+_PART_PROCESSES = 1  # worker processes for a stage's parts (parts_in_processes); 1: threads
 
 
 @contextmanager
@@ -249,11 +250,19 @@ def parts_in_processes(processes: int) -> Iterator[None]:
     threads share one interpreter lock (a part's Python between its array calls), one page-fault lock and GDAL's
     block cache; 16 threads composed a strip only 2.4x faster than one on a 16-core host (not diagnosed further
     there). Each worker holds its share of the block caches (GDAL's, the JPEG blocks'), so that all of them hold
-    what one process would. ``processes`` <= 1: no pool."""
+    what one process would. The workers are started for a stage's parts and stopped when they are done: what they
+    held (their caches, freed arrays the allocator kept, a GPU context) is returned before the stage's finish,
+    which runs here, and the next stage's parts. ``processes`` <= 1: threads."""
     global _PART_PROCESSES
-    if processes <= 1:
+    previous, _PART_PROCESSES = _PART_PROCESSES, max(1, processes)
+    try:
         yield
-        return
+    finally:
+        _PART_PROCESSES = previous
+
+
+@contextmanager
+def _part_pool(processes: int) -> Iterator[ProcessPoolExecutor]:
     import multiprocessing
 
     pool = ProcessPoolExecutor(
@@ -262,11 +271,9 @@ def parts_in_processes(processes: int) -> Iterator[None]:
         initializer=_init_part_process,
         initargs=(processes,),
     )
-    previous, _PART_PROCESSES = _PART_PROCESSES, pool
     try:
-        yield
+        yield pool
     finally:
-        _PART_PROCESSES = previous
         pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -290,7 +297,7 @@ def _part_in_process(module_name: str, stage: str, root: str, cfg: Any, key: str
 
 
 def _run_in_processes(
-    pool: ProcessPoolExecutor,
+    processes: int,
     module: ModuleType,
     stage: str,
     ws: JobWorkspace,
@@ -299,25 +306,31 @@ def _run_in_processes(
     todo: list[str],
     progress: ProgressFn,
 ) -> None:
-    """The parts ``todo`` (of ``keys``) on ``pool``'s processes, progress reported here as they finish."""
+    """The parts ``todo`` (of ``keys``) on up to ``processes`` worker processes of their own, progress reported here
+    as they finish; the workers are gone when it returns."""
+    # the frames' blocks this process decoded (its plan's reads) serve neither the workers nor the finish, which
+    # reads what the parts wrote: 512 MiB returned while the workers hold theirs
+    BLOCK_CACHE.clear()
+    release_freed_memory()
     one_thread = cfg.model_copy(update={"threads": 1})
     root, unit = str(Path(ws.root).resolve()), part_unit(module)
-    futures = [pool.submit(_part_in_process, module.__name__, stage, root, one_thread, key) for key in todo]
-    finished = len(keys) - len(todo)
-    try:
-        for future in as_completed(futures):
-            try:
-                future.result()  # a part's error is the stage's
-            except BrokenProcessPool:
-                raise PipelineError(
-                    f"a worker process died during {stage} (out of memory, or killed); the parts done are kept"
-                ) from None
-            finished += 1
-            progress(finished / len(keys), f"{unit} {finished}/{len(keys)}")
-    finally:
-        for future in futures:
-            future.cancel()
-        wait(futures)  # none left running on the job's files
+    with _part_pool(min(processes, len(todo))) as pool:
+        futures = [pool.submit(_part_in_process, module.__name__, stage, root, one_thread, key) for key in todo]
+        finished = len(keys) - len(todo)
+        try:
+            for future in as_completed(futures):
+                try:
+                    future.result()  # a part's error is the stage's
+                except BrokenProcessPool:
+                    raise PipelineError(
+                        f"a worker process died during {stage} (out of memory, or killed); the parts done are kept"
+                    ) from None
+                finished += 1
+                progress(finished / len(keys), f"{unit} {finished}/{len(keys)}")
+        finally:
+            for future in futures:
+                future.cancel()
+            wait(futures)  # none left running on the job's files
 
 
 def part_unit(module: ModuleType) -> str:

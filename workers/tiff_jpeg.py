@@ -59,6 +59,11 @@ class BlockCache:
                     self.bytes -= self._blocks.popitem(last=False)[1].nbytes
         return made
 
+    def clear(self) -> None:
+        with self._lock:
+            self._blocks.clear()
+            self.bytes = 0
+
 
 # the blocks windows are read from, per process: as much as GDAL's block cache had (workers/__init__), which these
 # reads no longer fill

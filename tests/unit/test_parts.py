@@ -65,17 +65,24 @@ def test_parts_done_are_not_redone_and_the_outputs_are_the_same(tmp_path: Path) 
 
 def test_parts_on_worker_processes_report_what_went_wrong(tmp_path: Path) -> None:
     """A part's error in a worker process is the stage's; a worker process that dies fails the stage with a
-    message, keeping the parts done; a part done is not done again."""
+    message, keeping the parts done; a part done is not done again. The workers are gone once the parts are done
+    (what they held is returned before the stage's finish)."""
+    import multiprocessing
+
     from tests.unit import part_probe
     from workers.config import MosaicConfig
     from workers.pipeline import PipelineError, parts_in_processes, run_parts
+    from workers.tiff_jpeg import BLOCK_CACHE
     from workers.workspace import noop_progress
 
     ws, cfg = JobWorkspace(tmp_path), MosaicConfig(threads=4)
+    BLOCK_CACHE.get("a decoded block", lambda: np.zeros(1000))
     with parts_in_processes(2):
         run_parts(part_probe, "probe", ws, cfg, ["a", "b", "c"], noop_progress)
         assert [ws.load_part("probe", k)["threads"] for k in "abc"] == [1, 1, 1]  # a part a core
         assert all(str(os.getpid()) not in ws.load_part("probe", k)["_done_by"] for k in "abc")
+        assert multiprocessing.active_children() == []
+        assert BLOCK_CACHE.bytes == 0  # this process's decoded blocks returned while the workers ran
         with pytest.raises(ValueError, match="a bad part"):
             run_parts(part_probe, "probe", ws, cfg, ["a", "bad"], noop_progress)
     with parts_in_processes(2), pytest.raises(PipelineError, match="worker process died during probe"):
