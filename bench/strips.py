@@ -328,6 +328,11 @@ def main(argv: list[str] | None = None) -> int:
             "stage_seconds": report["stage_seconds"],
             # the rest of the run: mostly the upload check of every frame (process_directory's inspect_image)
             "outside_stages_s": result["seconds"] - sum(report["stage_seconds"].values()),
+            # the parted stages' serial plan and finish against their parts (which more processes shorten)
+            **{
+                f"{stage}_phases_s": (JobWorkspace(root / "job").load_stage_report(stage) or {}).get("phase_seconds")
+                for stage in ("match_strips", "compose_mosaic")
+            },
             "gps_noise_over_sqrt_frames_m": args.gps_noise_m / np.sqrt(args.frames),
             # what a similarity (4 parameters) fitted to n fixes of sigma per axis puts centres within, RMS over
             # the fixes: sigma sqrt(trace(hat) / n) = 2 sigma / sqrt(n), twice the figure above

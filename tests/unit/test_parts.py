@@ -59,8 +59,13 @@ def test_parts_done_are_not_redone_and_the_outputs_are_the_same(tmp_path: Path) 
     assert [p.name for p in redone] == [p.name for p in features[:2]]  # exactly the two forgotten parts
     with rasterio.open(ws.mosaic_path()) as src:
         np.testing.assert_array_equal(src.read(), before)
-    summary = ws.load_stage_report("detect_features")["parts"]  # type: ignore[index]
+    report = ws.load_stage_report("detect_features")
+    assert report is not None
+    summary = report["parts"]
     assert summary["count"] == 4 and sum(v["parts"] for v in summary["by"].values()) == 4
+    phases = report["phase_seconds"]  # the serial plan and finish against the parts, timed
+    assert set(phases) == {"plan", "parts", "finish"} and all(v >= 0 for v in phases.values())
+    assert 0 < sum(phases.values()) <= report["wall_seconds"]
 
 
 def test_parts_on_worker_processes_report_what_went_wrong(tmp_path: Path) -> None:
