@@ -7,7 +7,7 @@
 # pipeline's GPU tests (they need rasterio and pydantic: wheels in .whl/ are installed to /tmp/site first when
 # present: scripts/gpu_wheels.sh); kernels = bench/kernels.py --large; strips = bench/strips.py on STRIPS_FRAMES
 # (40) full-size frames with STRIPS_OPTIONS (JSON, e.g. '{"threads": 4}': strip pairs at once on the GPU) and its
-# parts on STRIPS_PROCESSES worker processes (1: threads).
+# parts on STRIPS_PROCESSES worker processes (1: threads; a list such as "6 12": a run each, the frames rendered once).
 # Each step has its own time limit and writes its log to OUT_DIR, so one that fails or hangs leaves the others'.
 set -uo pipefail
 out=${1:?usage: gpu_check.sh OUT_DIR [STEP...]}
@@ -38,10 +38,13 @@ for step in $steps; do
         ;;
     kernels) timeout 240 "$py" bench/kernels.py --large --json "$out/kernels.json" 2>&1 | tee "$out/kernels.txt" ;;
     strips)
-        timeout "${STRIPS_TIMEOUT:-420}" "$py" bench/strips.py --frames "${STRIPS_FRAMES:-40}" \
-            --options "${STRIPS_OPTIONS:-{\}}" --processes "${STRIPS_PROCESSES:-1}" --render-processes "$(nproc)" \
-            --json "$out/strips.json" 2>&1 |
-            tee "$out/strips.txt"
+        # one run per count in STRIPS_PROCESSES (e.g. "6 12"), the frames rendered once (kept in /tmp/strip-frames)
+        for n in ${STRIPS_PROCESSES:-1}; do
+            timeout "${STRIPS_TIMEOUT:-420}" "$py" bench/strips.py --frames "${STRIPS_FRAMES:-40}" \
+                --options "${STRIPS_OPTIONS:-{\}}" --processes "$n" --render-processes "$(nproc)" \
+                --keep /tmp/strip-frames --json "$out/strips_p$n.json" 2>&1 |
+                tee "$out/strips_p$n.txt"
+        done
         ;;
     *) echo "unknown step $step" ;;
     esac
