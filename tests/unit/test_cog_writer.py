@@ -258,6 +258,29 @@ def test_a_gigapixel_mosaic_is_composed_into_the_same_cogs_with_no_scratch_mosai
     same_outputs(ws, before)
 
 
+def test_an_overview_row_that_cannot_be_written_fails_the_cog(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Overview tile rows are written on a thread of their own while the next are made: a row that cannot be written
+    (a full disk) fails the COG with its error, and no COG is left."""
+    rgb, mask, index = scene(700, 2100)
+    bands, _ = write_bands(tmp_path, rgb, mask, index, "deflate")
+    written = []
+    write_file = cog_writer._LevelOut._write_file
+
+    def full_disk(level: Any, path: Path, values: np.ndarray, covered: np.ndarray | None) -> None:
+        if written:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        written.append(path)
+        write_file(level, path, values, covered)
+
+    monkeypatch.setattr(cog_writer._LevelOut, "_write_file", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_cog_from_bands(
+            tmp_path / "ours.tif", bands, width=700, height=2100, crs=EPSG, transform=TRANSFORM,
+            compression="deflate", kind="rgb", tags={}, scratch=tmp_path / "m.tmp.tif",
+        )  # fmt: skip
+    assert len(written) == 1 and not (tmp_path / "ours.tif").exists()
+
+
 @pytest.mark.parametrize("kind", ["rgb", "index"])
 def test_an_overview_level_holds_its_own_rows_only(tmp_path: Path, kind: str) -> None:
     # a tall raster's top level receives a row per band and writes once it has a tile row of them: until then
