@@ -184,6 +184,9 @@ def truth_errors(strip: Any, job: Path) -> dict[str, float]:
         utm = apply_homography(geo.plane_to_map, np.array(centres))
         absolute = np.linalg.norm(utm - np.array(true_centres), axis=1)
         out.update(centre_abs_max_m=float(absolute.max()), centre_abs_rms_m=float(np.sqrt(np.mean(absolute**2))))
+        # the strip's mean position: what GPS noise / sqrt(frames) bounds (per axis), beside each centre's own miss
+        mean_miss = np.mean(utm - np.array(true_centres), axis=0)
+        out.update(centre_mean_miss_m=[float(v) for v in mean_miss])
         misses = np.linalg.norm(
             apply_homography(geo.plane_to_map, p) - apply_homography(strip.texture_to_utm, t), axis=1
         )
