@@ -205,8 +205,8 @@ def _write_overviews(
     chain = _AverageChain(levels) if kind == "rgb" else _NearestChain(levels)
     y = 0
     # the next band is read and pooled while this one's levels are averaged and written, and a tile row is
-    # compressed and written while the next is made: the three had taken turns, a third of the cores idle on two
-    # (1.06 Gpx strip, 2 cores: 16.0 -> 11.9 s), most of them on sixteen
+    # compressed and written while the next is made: the three had taken turns (a 1.06 Gpx strip on 2 cores, five
+    # runs each: 13.6-16.0 s -> 12.0-13.8 s; they should gain more on more cores)
     with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(1) as writer:
         for level in levels:
             level.writer = writer

@@ -349,20 +349,16 @@ def run_parted(module: ModuleType, stage: str, ws: JobWorkspace, cfg: Any, progr
     """A stage in parts, whole in this process: plan, the parts on threads, finish."""
     progress(0.0, "planning")
     plan, parts = progress_shares(module)
-    clock = [time.perf_counter()]
-
-    def lap() -> float:
-        clock.append(time.perf_counter())
-        return round(clock[-1] - clock[-2], 3)
-
+    started = time.perf_counter()
     todo = plan_stage(module, stage, ws, cfg)
-    planned = lap()
+    planned = time.perf_counter()
     run_parts(module, stage, ws, cfg, todo, lambda f, d: progress(plan + parts * f, d))
-    parted = lap()
+    parted = time.perf_counter()
     report = finish_stage(module, stage, ws, cfg, lambda f, d: progress(plan + parts + (1.0 - plan - parts) * f, d))
     report["parts"] = parts_summary(ws, stage)
     # the serial plan and finish against the parts, which more workers shorten
-    report["phase_seconds"] = {"plan": planned, "parts": parted, "finish": lap()}
+    marks = (started, planned, parted, time.perf_counter())
+    report["phase_seconds"] = {k: round(marks[n + 1] - marks[n], 3) for n, k in enumerate(("plan", "parts", "finish"))}
     return report
 
 
