@@ -82,6 +82,9 @@ class MosaicConfig(BaseModel):
     guided_matching: bool = True
     guided_min_overlap: float = Field(0.03, gt=0.0, le=1.0)  # least predicted overlap worth it, share of a frame
     max_tie_points_per_pair: int = Field(400, ge=20, le=5000)  # spread subset used in adjustment
+    # guided tie points a frame's pairs share: a pair measures this shared among the pairs of the less busy of
+    # its two frames (at most max_tie_points_per_pair): a frame in many overlaps needs fewer of each
+    tie_points_per_frame: int = Field(1200, ge=40, le=100000)
     perspective_damping: float = Field(1000.0, ge=0.0, le=1e6)  # adjustment: cost of perspective drift, 1/px
     gain_compensation: bool = True  # equalise brightness between overlapping frames
     # undo the lens' radial fall-off (vignetting), estimated from the overlaps (one camera for all frames)

@@ -52,3 +52,20 @@ def test_guided_tie_points_find_nothing_where_the_prediction_is_too_far() -> Non
     pts_i, pts_j = guided_tie_points(gray_i, gray_j, tie_corners(gray_i), off, max_points=300, search_px=12)
     errors = np.linalg.norm(apply_homography(TRUE_H, pts_i) - pts_j, axis=1)
     assert len(pts_i) < 20 or np.median(errors) > 5  # no false tie points passed off as true ones
+
+
+def test_a_frame_in_many_overlaps_measures_fewer_tie_points_a_pair() -> None:
+    """tie_points_per_frame is shared among the pairs of the less busy frame of each pair, at most
+    max_tie_points_per_pair: a strip's end pair keeps the most, a pair between two busy frames the fewest."""
+    from workers.config import MosaicConfig
+    from workers.stages.measure_ties import tie_budgets
+
+    cfg = MosaicConfig(tie_points_per_frame=600, max_tie_points_per_pair=400)
+    assert tie_budgets([(0, 1), (1, 2)], cfg) == {(0, 1): 400, (1, 2): 400}  # a 3-frame strip: 600 and 300
+    # five frames that all overlap (4 pairs each), and frame 5 overlapping frame 0 alone
+    block = [(i, j) for i in range(5) for j in range(i + 1, 5)] + [(0, 5)]
+    budgets = tie_budgets(block, cfg)
+    assert budgets[(0, 5)] == 400  # frame 5's only pair: 600, capped
+    assert {budgets[p] for p in block if p != (0, 5)} == {150}  # 600 / 4 (frame 0's 5 pairs: the other has 4)
+    triangle_and_tail = tie_budgets([(0, 1), (1, 2), (0, 2), (2, 3)], MosaicConfig(tie_points_per_frame=300))
+    assert triangle_and_tail == {(0, 1): 150, (1, 2): 150, (0, 2): 150, (2, 3): 300}
