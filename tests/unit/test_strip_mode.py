@@ -13,7 +13,7 @@ import rasterio
 
 from bench.strips import truth_errors
 from tests.strip_scenes import make_strip
-from workers.pipeline import process_directory, run_stage
+from workers.pipeline import PipelineError, process_directory, run_stage
 from workers.stages.write_report import _warnings
 from workers.workspace import JobWorkspace
 
@@ -134,3 +134,8 @@ def test_parts_on_worker_processes_give_what_threads_give(tmp_path: Path) -> Non
         theirs = np.load(tmp_path / "processes" / "matches" / path.name)
         for key, values in np.load(path).items():
             np.testing.assert_array_equal(theirs[key], values)
+    # the photos are checked on the worker processes too: the same entries, and a bad one named
+    assert JobWorkspace(tmp_path / "processes").load_inputs() == JobWorkspace(tmp_path / "threads").load_inputs()
+    (tmp_path / "frames" / "strip_009.tif").write_bytes(b"not a TIFF")
+    with pytest.raises(PipelineError, match="strip_009.tif: "):
+        process_directory(tmp_path / "frames", tmp_path / "bad", options, processes=2)
