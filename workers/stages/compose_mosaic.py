@@ -87,12 +87,12 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     else:
         ws.remove_seams()  # a feathered mosaic (again): no cut lines
     if cfg.ccd_segments > 1:
-        shared["ccd_gains"] = _ccd_gains(ws, cfg.ccd_segments).tolist()
+        shared["ccd_gains"] = _ccd_gains(ws, cfg.ccd_segments, thread_count(cfg.threads)).tolist()
     ws.save_part_inputs(STAGE, shared)
     return [f"{y:07d}" for y in range(0, geo.height, _band_rows(cfg, geo))]
 
 
-def _ccd_gains(ws: JobWorkspace, segments: int) -> np.ndarray:
+def _ccd_gains(ws: JobWorkspace, segments: int, threads: int) -> np.ndarray:
     """The gain of each CCD sub-image, from the native columns either side of every join of every frame."""
     frames = ws.load_composed_frames()
     widths = {f.orig_width for f in frames.values()}
@@ -106,7 +106,8 @@ def _ccd_gains(ws: JobWorkspace, segments: int) -> np.ndarray:
         return np.asarray(_photo(ws, frames, k)[:, c0:c1])
 
     blocks = {k: dct_block(frame.path) for k, frame in frames.items()}  # a join inside a JPEG block is smeared
-    return ccd_gains(columns_of, sorted(frames), width, segments, blocks)
+    # each thread on one photo at a time: at most 16, the photos _PHOTOS keeps open
+    return ccd_gains(columns_of, sorted(frames), width, segments, blocks, threads=min(16, threads))
 
 
 def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
