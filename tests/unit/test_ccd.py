@@ -36,6 +36,16 @@ def test_the_gains_are_found_from_the_rows(strip) -> None:
     # each step (what shows) to a tenth of its size; the gains drift a little as the steps add up from the left
     assert np.abs(np.diff(error)).mean() < 0.1 * np.abs(np.diff(np.log(truth.ccd_gains))).mean()
     assert np.abs(error).max() < 0.02, error
+    opened: list[int] = []  # frame by frame, on threads: the same gains, each frame's joins read together
+
+    def columns(k: int, c0: int, c1: int) -> np.ndarray:
+        opened.append(k)
+        return frames[k][:, c0:c1]
+
+    assert np.array_equal(ccd_gains(columns, [0, 1, 2], WIDTH, SEGMENTS, threads=3), found)
+    opened.clear()
+    ccd_gains(columns, [0, 1, 2], WIDTH, SEGMENTS)
+    assert opened == sorted(opened)
     flat = [np.full_like(f, 120) for f in frames]  # no steps at all: none found
     assert np.allclose(ccd_gains(lambda k, c0, c1: flat[k][:, c0:c1], [0, 1, 2], WIDTH, SEGMENTS), 1.0)
 
