@@ -31,6 +31,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -116,22 +117,33 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
 def resident_mib(pid: int) -> float:
     """A live process's resident set (VmRSS) with its descendants' (the pipeline's part workers), MiB; 0 once it
     is gone (or a zombie, which has none). Pages the processes share (libraries, mapped files) count once in each."""
-    try:
-        own = status_mib("VmRSS", pid)
-    except (FileNotFoundError, RuntimeError):
-        return 0.0
-    return own + sum(resident_mib(child) for child in children(pid))
+
+    def own(p: int) -> float:
+        try:
+            return status_mib("VmRSS", p)
+        except (FileNotFoundError, RuntimeError):
+            return 0.0
+
+    return tree_mib(pid, own)
 
 
 def proportional_mib(pid: int) -> float:
     """A live process's proportional set (``Pss`` of ``/proc/<pid>/smaps_rollup``: each page it shares with n
     processes counted 1/n) with its descendants', MiB: the host memory the process tree holds."""
-    try:
-        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
-    except (FileNotFoundError, ProcessLookupError, PermissionError):
-        return 0.0
-    own = next((int(line.split()[1]) / 1024 for line in text.splitlines() if line.startswith("Pss:")), 0.0)
-    return own + sum(proportional_mib(child) for child in children(pid))
+
+    def own(p: int) -> float:
+        try:
+            text = Path(f"/proc/{p}/smaps_rollup").read_text()
+        except (FileNotFoundError, ProcessLookupError, PermissionError):
+            return 0.0
+        return next((int(line.split()[1]) / 1024 for line in text.splitlines() if line.startswith("Pss:")), 0.0)
+
+    return tree_mib(pid, own)
+
+
+def tree_mib(pid: int, own: Callable[[int], float]) -> float:
+    """``own(pid)`` summed over a process and its descendants (none once it is gone)."""
+    return own(pid) + sum(tree_mib(child, own) for child in children(pid))
 
 
 def children(pid: int) -> list[int]:

@@ -11,9 +11,9 @@ import os
 import socket
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor, as_completed, wait
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -400,15 +400,16 @@ def process_directory(
     from workers.gps_file import GPS_FILE_NAMES, parse_gps_file, with_side_file_gps
 
     paths = sorted(p for p in Path(src_dir).iterdir() if p.suffix.lower() in {".jpg", ".jpeg", ".png", ".tif", ".tiff"})
-    if processes > 1 and len(paths) > 1:
-        # a JPEG-in-TIFF strip frame's check is thousands of block decodes, each with Python around it under one
-        # interpreter lock (40 frames, 2 cores: 9.9-10.5 s on threads, 8.1-8.4 s on processes; the H200
-        # machine's 16 threads took 20 s)
-        with _part_pool(min(processes, len(paths))) as processes_pool:
-            frames = list(processes_pool.map(_inspect, paths))
-    else:
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # Pillow releases the GIL as it decodes
-            frames = list(pool.map(_inspect, paths))
+    # on the worker processes when there are some: a JPEG-in-TIFF strip frame's check is thousands of block decodes,
+    # each with Python around it under one interpreter lock (40 frames, 2 cores: 9.9-10.5 s on threads, 8.1-8.4 s
+    # on processes; the H200 machine's 16 threads took 20 s); else a thread per core (Pillow decodes without it)
+    executor: AbstractContextManager[Executor] = (
+        _part_pool(min(processes, len(paths)))
+        if processes > 1 and len(paths) > 1
+        else ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+    )
+    with executor as pool:
+        frames = list(pool.map(_inspect, paths))
     side_file = next((Path(src_dir) / n for n in GPS_FILE_NAMES if (Path(src_dir) / n).exists()), None)
     if side_file is not None:  # geo.txt or gps.csv beside the photos: its positions over EXIF's, as jobs do
         try:

@@ -63,10 +63,10 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
             H_ij = np.linalg.inv(chained[r.j]) @ chained[r.i]
             if overlap_share(H_ij, size[r.i], size[r.j]) >= cfg.guided_min_overlap:
                 about[_key(r)] = {"pair": r.to_json(), "H": (H_ij / H_ij[2, 2]).tolist(), "search_px": GUIDED_SEARCH_PX}
-    budgets = tie_budgets([(r.i, r.j) for r in results if _key(r) in about], cfg)
-    for r in results:
-        if _key(r) in about:
-            about[_key(r)]["max_points"] = budgets[r.pair]
+    measured = [r for r in results if _key(r) in about]
+    budgets = tie_budgets([r.pair for r in measured], cfg)
+    for r in measured:
+        about[_key(r)]["max_points"] = budgets[r.pair]
     ws.save_part_inputs("measure_ties", about)
     return list(about)
 
