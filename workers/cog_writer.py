@@ -1,4 +1,4 @@
-"""A gigapixel mosaic's COG assembled from its bands, with no second copy of the mosaic on disk.
+"""A mosaic's COG assembled from its bands, with no second copy of the mosaic on disk.
 
 GDAL's COG driver copies a whole GeoTIFF with its overviews into the COG: while it writes, the scratch mosaic,
 its overviews and the growing COG are all on disk (a 2.55 Gpx strip peaked at 2.5x its inputs and outputs).

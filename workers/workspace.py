@@ -308,11 +308,12 @@ class JobWorkspace:
         shutil.rmtree(self.root / "native", ignore_errors=True)
 
     def mosaic_scratch_path(self) -> Path:
-        """The GeoTIFF ``compose_mosaic`` writes block by block before it becomes the COG."""
+        """What ``compose_mosaic``'s scratch files for ``mosaic.tif`` are named after (its overviews' tile rows,
+        its header: ``workers.cog_writer``)."""
         return self.root / "mosaic.tmp.tif"
 
     def frame_index_scratch_path(self) -> Path:
-        """The frame index's GeoTIFF, block by block, before it becomes ``frame_index.tif``."""
+        """What the scratch files for ``frame_index.tif`` are named after, as :meth:`mosaic_scratch_path`."""
         return self.root / "frame_index.tmp.tif"
 
     # -- calibration jobs -----------------------------------------------------------------------
@@ -698,15 +699,15 @@ class JobWorkspace:
         with load_npz(self._parts_dir(stage) / "arrays.npz") as data:
             return {name: data[name] for name in data.files}
 
-    def compose_band_path(self, y: int, raw: bool = False) -> Path:
-        """A band of mosaic rows from ``y`` that one part of ``compose_mosaic`` wrote (scratch): GeoTIFF, or with
-        ``raw`` an ``.npy`` of (h, w, 4) uint8 R, G, B and coverage."""
-        return self._parts_dir("compose_mosaic") / f"band_{y:07d}{'.npy' if raw else '.tif'}"
+    def compose_band_path(self, y: int) -> Path:
+        """A band of mosaic rows from ``y`` that one part of ``compose_mosaic`` wrote (scratch): a GeoTIFF of the
+        COG's own tiles."""
+        return self._parts_dir("compose_mosaic") / f"band_{y:07d}.tif"
 
-    def index_band_path(self, y: int, raw: bool = False) -> Path:
-        """The frame index of the band of rows from ``y`` (uint16 GeoTIFF, or ``.npy`` with ``raw``; scratch),
-        beside its pixels."""
-        return self._parts_dir("compose_mosaic") / f"index_{y:07d}{'.npy' if raw else '.tif'}"
+    def index_band_path(self, y: int) -> Path:
+        """The frame index of the band of rows from ``y`` (uint16 GeoTIFF of the COG's tiles; scratch), beside its
+        pixels."""
+        return self._parts_dir("compose_mosaic") / f"index_{y:07d}.tif"
 
     def part_inputs_version(self, stage: str) -> int:
         """Changes whenever ``save_part_inputs`` writes again (its file's modification time, ns)."""

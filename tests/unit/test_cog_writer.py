@@ -1,5 +1,5 @@
-"""A gigapixel mosaic's COG assembled from its bands (workers/cog_writer.py), against GDAL's COG driver writing
-the same raster (raster_io.translate_to_cog, the small mosaics' path) as the oracle."""
+"""A mosaic's COG assembled from its bands (workers/cog_writer.py), against GDAL's COG driver writing the same
+raster (raster_io.translate_to_cog, the crack reports' path) as the oracle."""
 
 from __future__ import annotations
 
@@ -207,22 +207,19 @@ def same_outputs(ws: JobWorkspace, before: dict[str, Any]) -> None:
     assert not left, left
 
 
-def test_a_gigapixel_mosaic_is_composed_into_the_same_cogs_with_no_scratch_mosaic(
+def test_a_mosaic_is_composed_into_cogs_from_its_bands_and_a_stopped_finish_writes_the_same(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """compose_mosaic past SCRATCH_RAW_MAX_PX: bands of 512 rows (block_px 256 rounded up to the COG's tiles)
-    written as the COG's tiles and assembled into the same mosaic and frame index as the small mosaics' path.
+    """compose_mosaic: bands of 512 rows (block_px 256 rounded up to the COG's tiles) written as the COG's tiles
+    and assembled into the mosaic and frame index, with no scratch mosaic; composed again, the same COGs.
     Stopped midway (two bands copied into the COG and deleted), with a band an older version wrote as ZSTD and a
     killed process's half-written COG beside it, the finish composes those bands again and writes the same
     COGs."""
-    from workers.stages import compose_mosaic
-
     make_flight(tmp_path / "frames", n_frames=6, frame_size=(640, 640), layout="grid", seed=5)
     process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 640, "block_px": 256})
     ws = JobWorkspace(tmp_path / "job")
     before = read_outputs(ws)
     assert before["mosaic"].shape[1] > 1024  # three bands or more
-    monkeypatch.setattr(compose_mosaic, "SCRATCH_RAW_MAX_PX", 0)
     ws.forget_stage_report("compose_mosaic")
     for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
         record.unlink()

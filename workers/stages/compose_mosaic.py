@@ -3,28 +3,25 @@
 
 The plan measures what every part shares: the gains and the coverage from a low-resolution render, and the
 seams (a multiband mosaic is cut along them; a feathered one's seam visibility is measured on them). Each part
-composes one band of rows (``block_px`` high) into a file of its own (``.npy`` planes), and the band's frame
-index (which frame each pixel came from) into another; the finish copies the bands into the scratch GeoTIFFs,
-builds the overviews and writes both COGs. Past SCRATCH_RAW_MAX_PX (a gigapixel strip) a band is a GeoTIFF of
-the COG's own tiles (a multiple of 512 rows), and the finish assembles the COGs from the bands themselves
-(:mod:`workers.cog_writer`): no scratch mosaic, so the disk holds the bands or the COGs, not both. Memory depends
-on the band's width and the frames' size, never on the size of the mosaic.
+composes one band of rows (``block_px`` high, rounded up to the COG's 512 px tiles) into a GeoTIFF of the COG's
+own tiles, compressed as the COG is, and the band's frame index (which frame each pixel came from) into another;
+the finish assembles both COGs from the bands with their overviews (:mod:`workers.cog_writer`), each band
+deleted once copied: no scratch mosaic, so the disk holds the bands or the COGs, not both. Memory depends on the
+band's width and the frames' size, never on the size of the mosaic.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
 import cv2
 import numpy as np
-import rasterio
 from rasterio.windows import Window
 
 from workers.algorithms.mosaic import (
-    SCRATCH_RAW_MAX_PX,
     ccd_gains,
     column_brightness,
     compose_block,
@@ -41,17 +38,9 @@ from workers.config import MosaicConfig
 from workers.parallel import RecentCache, keep_freed_memory, ordered_imap, thread_count
 from workers.photo_io import WindowReader, dct_block, reads_by_window
 from workers.pipeline import PipelineError
-from workers.raster_io import (
-    COG_BLOCK_PX,
-    STREAM_CACHE_MIB,
-    open_block_writer,
-    open_index_writer,
-    open_window_reader,
-    translate_index_to_cog,
-    translate_to_cog,
-)
+from workers.raster_io import COG_BLOCK_PX, open_window_reader
 from workers.records import Coverage, Frame
-from workers.workspace import JobWorkspace, ProgressFn, atomic_path, load_npy, noop_progress
+from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress
 
 STAGE = "compose_mosaic"
 _PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes from (native resolution)
@@ -114,8 +103,9 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     """Compose the band of rows from ``key`` into its files (``compose_band_path``, ``index_band_path``)."""
     y = int(key)
     geo = ws.load_georef()
-    if not _raw_bands(geo):  # a gigapixel mosaic: glibc keeps a window's freed arrays for the next (parallel)
-        keep_freed_memory()
+    # glibc keeps a window's freed arrays for the next (workers.parallel): on the Brighton strip's 14 MP mosaic
+    # the stage took 0.73 s instead of 0.82 s (median of four), for 0-13 MiB more at the job's peak
+    keep_freed_memory()
     shared = ws.load_part_inputs(STAGE)
     gains = {int(k): np.array(g, np.float64) for k, g in shared["gains"].items()}
     vignette = (float(shared["vignette"][0]), float(shared["vignette"][1]))
@@ -160,9 +150,6 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     # each window is written as it comes: a band in progress holds a few windows, not all of them (a 75000 px
     # wide strip's band is 38 Mpx: 0.3 GB a thread, 5 GB on 16 cores, when they were kept until the band ended)
     results = ordered_imap(one, windows, inner)
-    if _raw_bands(geo):
-        _save_raw_band(ws, y, geo.width, height, windows, results)
-        return {"rows": height}
     with (  # the COGs' own tiles, which the finish copies into them (cog_writer)
         atomic_path(ws.compose_band_path(y)) as tmp,
         atomic_path(ws.index_band_path(y)) as tmp_index,
@@ -178,42 +165,9 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
 def finish(
     ws: JobWorkspace, cfg: MosaicConfig, records: dict[str, dict[str, Any]], *, progress: ProgressFn = noop_progress
 ) -> dict[str, Any]:
-    """Move the bands into the scratch GeoTIFF (each deleted once copied), then write ``mosaic.tif`` (COG, RGB +
-    mask); past SCRATCH_RAW_MAX_PX assemble both COGs from the bands instead (:func:`_assemble_cogs`)."""
-    geo = ws.load_georef()
-    raw = _raw_bands(geo)
-    for key in records:  # bands a stopped finish had already copied (and deleted): composed again here
-        if not (ws.compose_band_path(int(key), raw).exists() and ws.index_band_path(int(key), raw).exists()):
-            run_part(ws, cfg, key)
-    if not raw:  # a gigapixel mosaic: the COGs assembled from the bands, with no scratch mosaic
-        _assemble_cogs(ws, cfg, records, progress)
-        return _finished(ws, cfg, records, progress)
-    tmp, tmp_index = ws.mosaic_scratch_path(), ws.frame_index_scratch_path()
-    transform = geo.transform if geo.georeferenced else None
-    with (
-        rasterio.Env(GDAL_CACHEMAX=STREAM_CACHE_MIB),  # blocks written once: not held in GDAL's cache (5 % of RAM)
-        open_block_writer(tmp, geo.width, geo.height, geo.epsg, transform, compress=None) as write,
-        open_index_writer(tmp_index, geo.width, geo.height, geo.epsg, transform, compress=None) as write_index,
-    ):
-        for n, key in enumerate(records):
-            y, height = int(key), int(records[key]["rows"])
-            # a band in one go: its planes are what GDAL writes
-            pixels, index = _raw_band(ws, y)
-            write(Window(0, y, geo.width, height), np.moveaxis(pixels[:3], 0, 2), pixels[3] > 0)
-            write_index(Window(0, y, geo.width, height), index)
-            # a band copied is a band deleted: the disk holds the bands or the scratch mosaic, not both (a finish
-            # stopped before its COG composes the deleted bands again, above)
-            ws.compose_band_path(y, raw).unlink()
-            ws.index_band_path(y, raw).unlink()
-            progress(0.15 * (n + 1) / len(records), f"band {n + 1}/{len(records)}")
-    progress(0.15, "writing COGs with overviews")  # copying the bands took ~10 % of finish, the mosaic's COG ~70 %
-    frames = ws.load_composed_frames()
-    description = _description(cfg)
-    translate_to_cog(tmp, ws.mosaic_path(), cfg.cog_compression, tags={"TIFFTAG_IMAGEDESCRIPTION": description})
-    progress(0.8, "writing the frame index")
-    translate_index_to_cog(tmp_index, ws.frame_index_path(), cfg.cog_compression, tags=_index_tags(frames))
-    tmp.unlink(missing_ok=True)
-    tmp_index.unlink(missing_ok=True)
+    """``mosaic.tif`` (COG, RGB + mask) and ``frame_index.tif`` assembled from the bands (:func:`_assemble_cogs`),
+    then the seams measured and the report's figures."""
+    _assemble_cogs(ws, cfg, records, progress)
     return _finished(ws, cfg, records, progress)
 
 
@@ -248,18 +202,10 @@ def _finished(
     }
 
 
-def _raw_bands(geo: Any) -> bool:
-    """Bands kept as ``.npy`` planes (no GDAL) up to SCRATCH_RAW_MAX_PX, copied by the finish into uncompressed
-    scratch GeoTIFFs: on the Brighton strip the bands' tiled GeoTIFF writes and reads cost 0.35 s of CPU, their
-    ``.npy`` 0.15 s, for the same COGs to the byte's value. Past it they are GeoTIFFs of the COGs' own tiles
-    (:func:`_assemble_cogs`): raw, a gigapixel mosaic's bands and scratch would take 4 B/px."""
-    return bool(geo.width * geo.height <= SCRATCH_RAW_MAX_PX)
-
-
 def _band_rows(cfg: MosaicConfig, geo: Any) -> int:
-    """Rows of a part's band: ``block_px``, rounded up to a multiple of the COG's 512 px tiles past
-    SCRATCH_RAW_MAX_PX, where the band's tiles are copied into the COG as they are."""
-    return cfg.block_px if _raw_bands(geo) else -(-cfg.block_px // COG_BLOCK_PX) * COG_BLOCK_PX
+    """Rows of a part's band: ``block_px``, rounded up to a multiple of the COG's 512 px tiles (the band's tiles
+    are copied into the COG as they are)."""
+    return -(-cfg.block_px // COG_BLOCK_PX) * COG_BLOCK_PX
 
 
 def _assemble_cogs(
@@ -268,8 +214,8 @@ def _assemble_cogs(
     """``mosaic.tif`` and ``frame_index.tif`` put together from the bands' tiles (:mod:`workers.cog_writer`),
     each band deleted once copied: the disk's peak is the COGs and a band, where copying the bands into a
     scratch mosaic and that into a COG held about three mosaics (13.3 GB for 5.9 GB of frames and COGs on
-    bench/strips.py's 40 frames). A finish stopped midway composes the bands it had deleted again (above, and
-    here those an older version wrote otherwise) and writes both COGs anew."""
+    bench/strips.py's 40 frames). A finish stopped midway composes the bands it had deleted again (and those an
+    older version wrote otherwise) and writes both COGs anew."""
     geo = ws.load_georef()
     for key, record in records.items():
         y, height = int(key), int(record["rows"])
@@ -308,36 +254,6 @@ def _assemble_cogs(
 def _description(cfg: MosaicConfig) -> str:
     """``mosaic.tif``'s TIFF description."""
     return f"Fotoskhema mosaic job, mode {cfg.mode}, blend {cfg.blend}"
-
-
-def _save_raw_band(
-    ws: JobWorkspace,
-    y: int,
-    width: int,
-    height: int,
-    windows: list[tuple[int, int, int, int]],
-    results: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
-) -> None:
-    """The band of rows from ``y`` as ``.npy``: (4, h, w) uint8 planes R, G, B and coverage (0/1), as the scratch
-    GeoTIFF stores them (band-interleaved), and the (h, w) uint16 frame index; each window's arrays copied in as
-    they come (a band's worth of memory, not two)."""
-    pixels = np.empty((4, height, width), np.uint8)
-    index = np.empty((height, width), np.uint16)
-    for (x, _, w, _), (rgb, mask, frame) in zip(windows, results, strict=True):
-        for c in range(3):
-            pixels[c, :, x : x + w] = rgb[..., c]
-        pixels[3, :, x : x + w] = mask
-        index[:, x : x + w] = _index_values(frame)
-    with atomic_path(ws.compose_band_path(y, raw=True)) as tmp:
-        np.save(tmp, pixels)
-    with atomic_path(ws.index_band_path(y, raw=True)) as tmp:
-        np.save(tmp, index)
-
-
-def _raw_band(ws: JobWorkspace, y: int) -> tuple[np.ndarray, np.ndarray]:
-    """The band of rows from ``y`` as :func:`_save_raw_band` wrote it, memory-mapped: (4, h, w) uint8 planes R, G,
-    B and coverage, and the (h, w) uint16 frame index."""
-    return load_npy(ws.compose_band_path(y, raw=True), mmap=True), load_npy(ws.index_band_path(y, raw=True), mmap=True)
 
 
 def _index_values(index: np.ndarray) -> np.ndarray:

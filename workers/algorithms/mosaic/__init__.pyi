@@ -103,9 +103,6 @@ from .grid import (
     MIN_GPS_SPREAD_M as MIN_GPS_SPREAD_M,
 )
 from .grid import (
-    SCRATCH_RAW_MAX_PX as SCRATCH_RAW_MAX_PX,
-)
-from .grid import (
     disk_needed as disk_needed,
 )
 from .grid import (

@@ -12,26 +12,21 @@ from workers.algorithms.mosaic.alignment import apply_homography, frame_corners
 
 MAX_OUTPUT_PIXELS = 4_000_000_000  # ortho mode: a larger grid means a ground range gone wrong
 MAX_SPREAD = 1000.0  # planar: a grid this many times the frames' own area means the alignment broke
-# disk a mosaic needs per output px while it is written: up to SCRATCH_RAW_MAX_PX the scratch GeoTIFF (3 bands
-# and a mask, uncompressed) with its overviews (a third more) and the COG with its overviews (measured: about
-# 1.2 B/px on drone mosaics, 1.7 on a synthetic strip's busy ground, deflate with predictor; 2 allows for busier
-# ground). Past it the bands are the COG's own tiles, assembled into it and deleted as they are copied
-# (workers/cog_writer.py): the COG and a band, 1.01x the COGs on bench/cog_disk.py's 0.6 Gpx mosaic, where the
-# scratch path peaked at 2.74x (the 2.5 Gpx strip of bench/strips.py at 5.05 B/px). JPEG (quality 90) COGs took
-# 0.36 B/px with their overviews and the frame index on that strip's ground (bench/strips.py, 20000 px frames);
-# 0.75 allows for busier ground, as 2 does for the lossless codecs.
-SCRATCH_RAW_MAX_PX = 500_000_000
+# disk a mosaic needs per output px while it is written: the COGs with their overviews (measured: about 1.2 B/px
+# on drone mosaics, 1.7 on a synthetic strip's busy ground, deflate with predictor; 2 allows for busier ground)
+# and a band: the bands are the COGs' own tiles, assembled into them and deleted as they are copied
+# (workers/cog_writer.py): 1.01x the COGs on bench/cog_disk.py's 0.6 Gpx mosaic, where a scratch mosaic copied
+# into a COG peaked at 2.74x. JPEG (quality 90) COGs took 0.36 B/px with their overviews and the frame index on
+# the synthetic strip's ground (bench/strips.py, 20000 px frames); 0.75 allows for busier ground, as 2 does for
+# the lossless codecs.
 COG_BYTES_PER_PX = {"deflate": 2.0, "zstd": 2.0, "lzw": 2.0, "jpeg": 0.75}
 
 
 def disk_needed(width: int, height: int, compression: str = "deflate") -> int:
     """Bytes of free disk a ``width`` x ``height`` mosaic needs while it is written (an estimate), its COG
     compressed with ``compression`` (a ``cog_compression`` option)."""
-    px = width * height
-    cog = COG_BYTES_PER_PX[compression]
-    if px > SCRATCH_RAW_MAX_PX:
-        return int(px * cog * 1.1)  # the COGs, a band and the overviews' last tile rows
-    return int(px * (4.0 * 4 / 3 + cog))
+    # the COGs and their overviews' last tile rows, and a band being copied (512 rows at compose's default)
+    return int(COG_BYTES_PER_PX[compression] * (width * height * 1.1 + width * 512))
 
 
 def output_size_problem(
