@@ -85,7 +85,8 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
     recv, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, args))
     peak = [0]
-    memory: list[tuple[float, float, float]] = []  # (seconds since start, the child's tree's resident, PSS MiB)
+    # (seconds since start, the child's tree's resident, its PSS, its largest process's resident MiB)
+    memory: list[tuple[float, float, float, float]] = []
     done = threading.Event()
 
     clock = time.perf_counter()
@@ -94,7 +95,7 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
         while not done.wait(2.0):
             peak[0] = max(peak[0], folder_bytes(watch) if watch and watch.exists() else 0)
             pid = proc.pid or 0
-            memory.append((time.perf_counter() - clock, resident_mib(pid), proportional_mib(pid)))
+            memory.append((time.perf_counter() - clock, resident_mib(pid), proportional_mib(pid), largest_mib(pid)))
 
     sampler = threading.Thread(target=sample, daemon=True)
     proc.start()
@@ -117,14 +118,15 @@ def in_child(*args: Any, watch: Path | None = None) -> dict[str, Any]:
 def resident_mib(pid: int) -> float:
     """A live process's resident set (VmRSS) with its descendants' (the pipeline's part workers), MiB; 0 once it
     is gone (or a zombie, which has none). Pages the processes share (libraries, mapped files) count once in each."""
+    return tree_mib(pid, rss_mib)
 
-    def own(p: int) -> float:
-        try:
-            return status_mib("VmRSS", p)
-        except (FileNotFoundError, RuntimeError):
-            return 0.0
 
-    return tree_mib(pid, own)
+def rss_mib(pid: int) -> float:
+    """One process's resident set (VmRSS), MiB; 0 once it is gone."""
+    try:
+        return status_mib("VmRSS", pid)
+    except (FileNotFoundError, RuntimeError):
+        return 0.0
 
 
 def proportional_mib(pid: int) -> float:
@@ -139,6 +141,16 @@ def proportional_mib(pid: int) -> float:
         return next((int(line.split()[1]) / 1024 for line in text.splitlines() if line.startswith("Pss:")), 0.0)
 
     return tree_mib(pid, own)
+
+
+def largest_mib(pid: int) -> float:
+    """The largest resident set (VmRSS) of a live process and its descendants, MiB: with part workers, one worker's
+    share (a GPU context's host memory shows here) against the pipeline's process."""
+
+    def tree(p: int) -> list[float]:
+        return [rss_mib(p), *(m for child in children(p) for m in tree(child))]
+
+    return max(tree(pid))
 
 
 def tree_mib(pid: int, own: Callable[[int], float]) -> float:
@@ -158,7 +170,7 @@ def children(pid: int) -> list[int]:
 
 
 def peak_by_stage(
-    samples: list[tuple[float, float, float]], stage_seconds: dict[str, float], end: float
+    samples: list[tuple[float, float, float, float]], stage_seconds: dict[str, float], end: float
 ) -> dict[str, int]:
     """Each stage's peak resident MiB from the samples, the stages placed end to end back from ``end``, when the
     pipeline answered (what it spends outside its stages falls before the first)."""
@@ -167,7 +179,7 @@ def peak_by_stage(
         ends[name] = (end - seconds, end)
         end -= seconds
     return {
-        name: round(max((mib for t, mib, _ in samples if start <= t <= stop), default=0.0))
+        name: round(max((mib for t, mib, *_ in samples if start <= t <= stop), default=0.0))
         for name, (start, stop) in reversed(list(ends.items()))
     }
 
@@ -323,9 +335,10 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": result["seconds"],
             "frames_per_hour": 3600 * args.frames / result["seconds"],
             "peak_mib": result["peak_mib"],  # the pipeline's process; with part workers, the samples' peak too:
-            "peak_sampled_mib": round(max((mib for _, mib, _ in result["memory_samples"]), default=0.0)),
+            "peak_sampled_mib": round(max((mib for _, mib, *_ in result["memory_samples"]), default=0.0)),
             # the same samples' proportional set: shared pages (libraries, mapped files) counted once in all
-            "peak_pss_mib": round(max((pss for _, _, pss in result["memory_samples"]), default=0.0)),
+            "peak_pss_mib": round(max((pss for _, _, pss, _ in result["memory_samples"]), default=0.0)),
+            "peak_process_mib": round(max((one for *_, one in result["memory_samples"]), default=0.0)),
             "processes": args.processes,
             "peak_mib_by_stage": peak_by_stage(
                 result["memory_samples"], report["stage_seconds"], result["answered_at"]
