@@ -34,7 +34,8 @@ def usable_cores() -> int:
 # of a 75000 px strip took 600k page faults and 1.5 s of system time in 3.0 s (and threads fault under one lock
 # per process). Kept in the process up to 32 MiB an array and 64 MiB free at a heap's top: 6k faults, 0.6 s.
 # Set by the stages that make and drop large arrays window after window (compose_mosaic, match_strips): on the
-# Brighton strip's 14 MP mosaic compose took 0.73 s instead of 0.82 s for 0-13 MiB more at the job's peak.
+# Brighton strip's 14 MP mosaic compose took 0.73 s instead of 0.82 s (medians of four), the 30-frame synthetic
+# flight's 1.18 s instead of 1.32 s, for up to 40 MiB more at the job's peak (that flight: 342 -> 382 MiB).
 MALLOC_MMAP_THRESHOLD = 32 << 20
 MALLOC_TRIM_THRESHOLD = 64 << 20
 
