@@ -339,7 +339,7 @@ class _AverageChain:
 
     def add(self, first: tuple[np.ndarray, np.ndarray], y: int) -> None:
         sums, counts = first
-        self.levels[0].add(_by_columns(_average, sums, counts), counts > 0)
+        self.levels[0].add(_by_columns(partial(_average, full=4), sums, counts), counts > 0)
         for k in range(1, len(self.levels)):
             self.seen[k] += counts.shape[0]
             carried = self.carry[k]
@@ -354,7 +354,7 @@ class _AverageChain:
             # a level-k sum holds 4^(k+1) pixels of 255 at most: 32 bits to k = 10 (factor 2048)
             wide = np.uint32 if k <= 10 else np.uint64
             sums, counts = _by_columns(partial(_pool, dtype=wide), sums, counts)
-            self.levels[k].add(_by_columns(_average, sums, counts), counts > 0)
+            self.levels[k].add(_by_columns(partial(_average, full=4 ** (k + 1)), sums, counts), counts > 0)
 
 
 _COLUMNS_PX = 2048  # least columns a thread pools or averages at once (an even number: 2x2 blocks stay whole)
@@ -380,13 +380,25 @@ def _by_columns(fn: Any, sums: np.ndarray, counts: np.ndarray) -> Any:
     return np.concatenate(parts, axis=1)
 
 
-def _average(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """(h, w, 3) uint8: sums / counts rounded half up (as GDAL rounds), 0 where nothing is covered. Divided in
-    floating point (4x integer division's speed), exactly: a quotient's distance from the next integer, at
-    least 1 / count, is far above the rounding error (float32 for the first level's counts of 4 at most)."""
-    c = np.maximum(counts, 1)
-    quotient = (sums + (c // 2)[..., None]).astype(np.float32 if counts.dtype == np.uint16 else np.float64)
-    np.divide(quotient, c[..., None], out=quotient)
+def _average(sums: np.ndarray, counts: np.ndarray, full: int) -> np.ndarray:
+    """(h, w, 3) uint8: sums / counts rounded half up (as GDAL rounds), 0 where nothing is covered; ``full``, the
+    count of a block wholly covered (4 ** level, a power of 2), is divided by a shift, the rest (a mask's edge)
+    by :func:`_divided`. Most of a mosaic's blocks are whole: a 75000 px strip band's first level took 0.126 s
+    all divided, 0.030 s so."""
+    shift = full.bit_length() - 1
+    out = ((sums + full // 2) >> shift).astype(np.uint8)  # nothing covered: sums 0, so 0 as well
+    cut = (counts != full) & (counts != 0)
+    if cut.any():
+        out[cut] = _divided(sums[cut], counts[cut])
+    return out
+
+
+def _divided(sums: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(..., 3) uint8: ``sums`` (..., 3) / ``counts`` (...) rounded half up, counts >= 1. Divided in floating point
+    (4x integer division's speed), exactly: a quotient's distance from the next integer, at least 1 / count, is far
+    above the rounding error (float32 for the first level's counts of 4 at most)."""
+    quotient = (sums + (counts // 2)[..., None]).astype(np.float32 if counts.dtype == np.uint16 else np.float64)
+    np.divide(quotient, counts[..., None], out=quotient)
     return quotient.astype(np.uint8)  # truncated: the floor of a positive number
 
 

@@ -319,8 +319,22 @@ def test_pooling_by_blocks_of_columns_equals_pooling_whole(monkeypatch: pytest.M
         whole = cog_writer._pool(sums, counts, wide)
         blocks = cog_writer._by_columns(lambda s, c, wide=wide: cog_writer._pool(s, c, wide), sums, counts)
         assert all(np.array_equal(a, b) and a.dtype == b.dtype for a, b in zip(whole, blocks, strict=True))
-        assert np.array_equal(cog_writer._by_columns(cog_writer._average, *whole), cog_writer._average(*whole))
-    assert cog_writer._by_columns(cog_writer._average, sums, counts).shape == (5, 51, 3)
+        average = partial(cog_writer._average, full=16)
+        assert np.array_equal(cog_writer._by_columns(average, *whole), average(*whole))
+    assert cog_writer._by_columns(partial(cog_writer._average, full=4), sums, counts).shape == (5, 51, 3)
+
+
+@pytest.mark.parametrize(("full", "dtype"), [(4, np.uint16), (64, np.uint32)])
+def test_averages_of_whole_blocks_by_shift_equal_the_division(full: int, dtype: type) -> None:
+    """A level's averages: whole blocks (``full`` pixels covered) by a shift, cut ones (a mask's edge) by division,
+    uncovered ones 0; every one the covered pixels' mean rounded half up, as the integer oracle has it."""
+    rng = np.random.default_rng(3)
+    counts = rng.choice([0, 1, full - 1, full, full], size=(40, 60)).astype(dtype)
+    sums = (rng.integers(0, 256, (40, 60, 3)) * counts[..., None]).astype(dtype)  # a mean up to 255
+    sums[..., 1] = np.minimum(sums[..., 1] + counts // 2, 255 * counts)  # halves: rounded up
+    expected = (2 * sums.astype(np.int64) + counts[..., None]) // (2 * np.maximum(counts, 1)[..., None])
+    assert np.array_equal(cog_writer._average(sums, counts, full), expected)
+    assert (counts == full).any() and ((counts != full) & (counts > 0)).any() and (counts == 0).any()
 
 
 def test_tiles_copied_by_python_when_the_kernel_cannot_are_the_same_bytes(
