@@ -3,12 +3,13 @@
 Run by hand from the repository root::
 
     .venv/bin/python bench/mosaic_vs_opencv.py [DIR ...] [--working-max-px N] [--synthetic N]
-        [--scaling 10 30 100] [--json OUT]
+        [--scaling 10 30 100] [--repeat N] [--json OUT]
 
 Data sets: each ``DIR`` given, else ``drone_brighton_strip1`` and ``stitching`` (budapest1-6) from
 ``../shared/data`` where present; ``--synthetic N`` (default 30, 0 for none) adds a GPS flight of N frames
 rendered by ``tests/scenes.py`` into a temp dir. ``--scaling`` times our pipeline alone on synthetic flights
-of those sizes (seconds per frame should stay flat).
+of those sizes (seconds per frame should stay flat). ``--repeat N`` runs each side N times per data set,
+alternately, and reports the medians (a single cold run varies by 10-20 % on a 2-core machine) with the ranges.
 
 Each run happens in its own spawned child process, so the peak resident memory it reports (the
 child's VmHWM) is that run's alone. Both runs start from the same JPEGs: ours is asked for working
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import statistics
 import sys
 import tempfile
 import time
@@ -175,6 +177,16 @@ def print_table(results: list[dict[str, Any]]) -> None:
         )
     print("time x, mem x: ours / OpenCV in the same run. *our tie-point RMS in the photos' own pixels.")
     for res in results:
+        runs = res.get("runs", {})
+        if len(runs.get("ours", [])) > 1:  # --repeat: the medians above, the ranges here
+            spread = {who: [r[0] for r in runs[who]] for who in ("ours", "opencv")}
+            paired = [r["seconds"] for r in runs["ratios"] if r["seconds"] is not None]
+            print(
+                f"{res['name']}: {len(runs['ours'])} runs each, medians above; ours {min(spread['ours']):.2f}-"
+                f"{max(spread['ours']):.2f} s, OpenCV {min(spread['opencv']):.2f}-{max(spread['opencv']):.2f} s"
+                + (f", time x run by run {min(paired):.2f}-{max(paired):.2f}" if paired else "")
+            )
+    for res in results:
         for who in ("ours", "opencv"):
             if not res[who]["ok"]:
                 print(f"{res['name']}: {who} failed: {res[who]['status']}")
@@ -191,13 +203,21 @@ def synthetic_flight(out: Path, n_frames: int) -> Path:
     return out
 
 
-def measure(name: str, src: Path, working_max_px: int, with_opencv: bool = True) -> dict[str, Any]:
+def measure(name: str, src: Path, working_max_px: int, with_opencv: bool = True, repeat: int = 1) -> dict[str, Any]:
+    """Both runs on ``src``, ``repeat`` times each, alternately, each in a fresh child. ``ours`` and ``opencv`` are
+    each side's run of median seconds (its peak memory the median of the runs'); ``runs`` every run's seconds and
+    peak, and the ratios of each pair of runs."""
     n = len(image_paths(src))
     print(f"{name}: {n} frames, both runs at {working_max_px} px on the longest side ...", flush=True)
-    ours = in_child(run_ours, str(src), working_max_px)
-    cv = in_child(run_opencv, str(src), working_max_px) if with_opencv else {"ok": False, "status": "not run"}
-    cv.setdefault("seconds", float("nan"))
-    cv.setdefault("peak_mib", float("nan"))
+    ours_runs, cv_runs = [], []
+    for _ in range(repeat):
+        ours_runs.append(in_child(run_ours, str(src), working_max_px))
+        cv_runs.append(in_child(run_opencv, str(src), working_max_px) if with_opencv else {"ok": False})
+    for cv in cv_runs:
+        cv.setdefault("status", "not run")
+        cv.setdefault("seconds", float("nan"))
+        cv.setdefault("peak_mib", float("nan"))
+    ours, cv = median_run(ours_runs), median_run(cv_runs)
     return {
         "name": name,
         "dir": str(src),
@@ -206,7 +226,23 @@ def measure(name: str, src: Path, working_max_px: int, with_opencv: bool = True)
         "ours": ours,
         "opencv": cv,
         "ratios": ratios(ours, cv),
+        "runs": {
+            "ours": [[r["seconds"], r["peak_mib"]] for r in ours_runs],
+            "opencv": [[r["seconds"], r["peak_mib"]] for r in cv_runs],
+            "ratios": [ratios(a, b) for a, b in zip(ours_runs, cv_runs, strict=True)],
+        },
     }
+
+
+def median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The run of median seconds (the lower middle one of an even count), with the median of the runs' peaks;
+    a failed run, if any failed."""
+    failed = [r for r in runs if not r["ok"]]
+    if failed:
+        return failed[0]
+    middle = dict(sorted(runs, key=lambda r: r["seconds"])[(len(runs) - 1) // 2])
+    middle["peak_mib"] = statistics.median(r["peak_mib"] for r in runs)
+    return middle
 
 
 def native_cost(result: dict[str, Any]) -> dict[str, Any]:
@@ -244,6 +280,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--scaling", type=int, nargs="*", default=[], help="synthetic flight sizes, ours only")
     parser.add_argument("--json", type=Path, default=None, help="also save the figures here")
     parser.add_argument(
+        "--repeat", type=int, default=1, help="runs of each side per data set, alternately (medians reported)"
+    )
+    parser.add_argument(
         "--native", action="store_true", help="also time ours at the photos' own resolution (output_resolution)"
     )
     return parser.parse_args(argv)
@@ -260,12 +299,12 @@ def main(argv: list[str] | None = None) -> int:
 
         args.working_max_px = MosaicConfig().working_max_px
     print("OpenCV gets frames resized beforehand (same input, fair comparison); one child process per run")
-    results = [measure(d.name, d, args.working_max_px) for d in dirs]
+    results = [measure(d.name, d, args.working_max_px, repeat=args.repeat) for d in dirs]
     scaling: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         if args.synthetic:
             src = synthetic_flight(Path(tmp) / f"synthetic{args.synthetic}", args.synthetic)
-            results.append(measure(f"synthetic {args.synthetic} GPS", src, args.working_max_px))
+            results.append(measure(f"synthetic {args.synthetic} GPS", src, args.working_max_px, repeat=args.repeat))
         for n in args.scaling:
             src = synthetic_flight(Path(tmp) / f"scaling{n}", n)
             scaling.append(measure(f"synthetic {n}", src, args.working_max_px, with_opencv=False))
