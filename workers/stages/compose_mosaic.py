@@ -40,7 +40,7 @@ from workers.photo_io import WindowReader, dct_block, reads_by_window
 from workers.pipeline import PipelineError
 from workers.raster_io import COG_BLOCK_PX, open_window_reader
 from workers.records import Coverage, Frame
-from workers.workspace import JobWorkspace, ProgressFn, atomic_path, noop_progress
+from workers.workspace import JobWorkspace, NpyWindows, ProgressFn, atomic_path, noop_progress
 
 STAGE = "compose_mosaic"
 _PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes from (native resolution)
@@ -110,11 +110,12 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     gains = {int(k): np.array(g, np.float64) for k, g in shared["gains"].items()}
     vignette = (float(shared["vignette"][0]), float(shared["vignette"][1]))
     sizes, to_frame = _working_geometry(ws)
-    opened: dict[int, np.ndarray] = {}  # each frame's working copy memory-mapped once a part, not once a window
+    # each frame's working copy read by window, not memory-mapped: a map keeps the rows it has touched resident
+    opened: dict[int, NpyWindows] = {}
 
-    def working(k: int) -> np.ndarray:
+    def working(k: int) -> NpyWindows:
         if k not in opened:
-            opened[k] = ws.load_compose_image(k, mmap=True)
+            opened[k] = ws.compose_image_windows(k)
         return opened[k]
 
     image_of: Callable[[int], Any] = working
