@@ -303,6 +303,10 @@ class JobWorkspace:
     def load_native_image(self, index: int, mmap: bool = False) -> np.ndarray:
         return load_npy(self._native_image_file(index), mmap)
 
+    def native_image_windows(self, index: int) -> NpyWindows:
+        """The full photo :meth:`save_native_image` kept, read by window (:class:`NpyWindows`)."""
+        return NpyWindows(self._native_image_file(index))
+
     def remove_native_images(self) -> None:
         """Drop the full photos ``compose_mosaic`` decoded: the job's inputs keep them, at a tenth of the size."""
         shutil.rmtree(self.root / "native", ignore_errors=True)

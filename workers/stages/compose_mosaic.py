@@ -123,7 +123,7 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
         frames = ws.load_composed_frames()
         to_frame = {k: _working_to_photo(frames[k]) @ M for k, M in to_frame.items()}
         sizes = {k: (frames[k].orig_width, frames[k].orig_height) for k in to_frame}
-        image_of = partial(_photo, ws, frames)
+        image_of = partial(_photo, ws, frames, by_rows=True)
     boxes = {k: output_box(M, sizes[k], geo.width, geo.height) for k, M in to_frame.items()}
     steps = np.array(shared["ccd_gains"]) if "ccd_gains" in shared else None
     columns = None if steps is None else {k: column_brightness(sizes[k][0], steps) for k in to_frame}
@@ -289,10 +289,12 @@ def _working_to_photo(frame: Frame) -> np.ndarray:
     return np.array([[1 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _photo(ws: JobWorkspace, frames: dict[int, Frame], k: int) -> Any:
+def _photo(ws: JobWorkspace, frames: dict[int, Frame], k: int, *, by_rows: bool = False) -> Any:
     """Photo ``k`` at full size, as something windows can be sliced from: a TIFF read by window where it lies
     (never decoded whole), any other photo decoded once into the job's scratch (``native/``, shared by every
-    worker; written atomically, so two workers decoding it at once both leave a whole file) and memory-mapped."""
+    worker; written atomically, so two workers decoding it at once both leave a whole file) and read from there
+    by rows (``by_rows``: :class:`NpyWindows`, for windows; nothing of it stays resident) or memory-mapped (for
+    columns, which rows would read whole: the CCD joins)."""
 
     def open_photo() -> Any:
         frame = frames[k]
@@ -306,6 +308,6 @@ def _photo(ws: JobWorkspace, frames: dict[int, Frame], k: int) -> Any:
             if image is None or image.shape[:2] != (frame.orig_height, frame.orig_width):
                 raise PipelineError(f"{frame.name} could not be decoded again at its full size")
             ws.save_native_image(k, image)
-        return ws.load_native_image(k, mmap=True)
+        return ws.native_image_windows(k) if by_rows else ws.load_native_image(k, mmap=True)
 
-    return _PHOTOS.get((str(ws.root.resolve()), k), open_photo)
+    return _PHOTOS.get((str(ws.root.resolve()), k, by_rows), open_photo)
