@@ -310,4 +310,5 @@ def _photo(ws: JobWorkspace, frames: dict[int, Frame], k: int, *, by_rows: bool 
             ws.save_native_image(k, image)
         return ws.native_image_windows(k) if by_rows else ws.load_native_image(k, mmap=True)
 
-    return _PHOTOS.get((str(ws.root.resolve()), k, by_rows), open_photo)
+    # a TIFF's reader serves both: one per frame, its block table parsed once
+    return _PHOTOS.get((str(ws.root.resolve()), k, by_rows and not reads_by_window(frames[k].path)), open_photo)
