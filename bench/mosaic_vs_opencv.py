@@ -12,7 +12,9 @@ of those sizes (seconds per frame should stay flat). ``--repeat N`` runs each si
 alternately, and reports the medians (a single cold run varies by 10-20 % on a 2-core machine) with the ranges.
 
 Each run happens in its own spawned child process, so the peak resident memory it reports (the
-child's VmHWM) is that run's alone. Both runs start from the same JPEGs: ours is asked for working
+child's VmHWM) is that run's alone. A line per data set splits each side's peak into what its process held when the
+clock started (its libraries and modules: ours import rasterio's GDAL and Pydantic, OpenCV's side only cv2 and
+NumPy) and what the run added on top. Both runs start from the same JPEGs: ours is asked for working
 copies of N px on the longest side, and OpenCV gets the frames already resized to N px.
 """
 
@@ -37,23 +39,34 @@ sys.path.insert(0, str(ROOT))  # run as a script from a checkout, installed or n
 
 def peak_rss_mib() -> float:
     """This process's peak resident set size (VmHWM), MiB."""
+    return _status_mib("VmHWM")
+
+
+def rss_mib() -> float:
+    """This process's resident set size now (VmRSS), MiB."""
+    return _status_mib("VmRSS")
+
+
+def _status_mib(field: str) -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
+    raise RuntimeError(f"no {field} in /proc/self/status (Linux only)")
 
 
 def run_ours(src: str, working_max_px: int, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Child: the full pipeline, including writing the COG and report.json into a temp dir.
 
     The stage modules are imported before the clock starts, as a worker imports its tasks once when it
-    starts (about 0.4 s of SciPy, rasterio and the stages); the OpenCV run likewise imports cv2 first.
+    starts (about 0.4 s of rasterio, Pydantic and the stages); the OpenCV run likewise imports cv2 first. What
+    the process holds then (``start_mib``) is in its peak, as OpenCV's and NumPy's libraries are in the other's.
     """
     from workers.pipeline import pipeline_key, process_directory, stage_function, stage_names
 
     options = {"working_max_px": working_max_px, **(extra or {})}
     for stage in stage_names(pipeline_key("mosaic", options)):
         stage_function(stage)
+    start_mib = rss_mib()
     with tempfile.TemporaryDirectory() as out:
         started = time.perf_counter()
         try:
@@ -64,6 +77,7 @@ def run_ours(src: str, working_max_px: int, extra: dict[str, Any] | None = None)
                 "status": f"{type(exc).__name__}: {exc}",
                 "seconds": time.perf_counter() - started,
                 "peak_mib": peak_rss_mib(),
+                "start_mib": start_mib,
             }
         seconds = time.perf_counter() - started
     used = report.get("frames_used")
@@ -72,6 +86,7 @@ def run_ours(src: str, working_max_px: int, extra: dict[str, Any] | None = None)
         "status": "ok",
         "seconds": seconds,
         "peak_mib": peak_rss_mib(),
+        "start_mib": start_mib,
         "size": [report["mosaic"]["width"], report["mosaic"]["height"]],
         "frames_used": len(used) if isinstance(used, list) else used,  # the report lists them
         "tie_point_rms_px": report.get("tie_point_rms_px"),
@@ -96,6 +111,7 @@ def run_opencv(src: str, working_max_px: int) -> dict[str, Any]:
     """Child: load, resize, stitch (SCANS, OpenCV's defaults otherwise) and write a TIFF."""
     import cv2
 
+    start_mib = rss_mib()
     started = time.perf_counter()
     frames = [load_resized(p, working_max_px) for p in image_paths(Path(src))]
     stitcher = cv2.Stitcher_create(cv2.Stitcher_SCANS)
@@ -109,6 +125,7 @@ def run_opencv(src: str, working_max_px: int) -> dict[str, Any]:
         "status": f"{status} {STITCH_STATUS.get(status, '')}",
         "seconds": time.perf_counter() - started,
         "peak_mib": peak_rss_mib(),
+        "start_mib": start_mib,
     }
     if ok:
         result.update(size=[pano.shape[1], pano.shape[0]], frames_used=len(stitcher.component()))
@@ -154,6 +171,19 @@ def ratios(ours: dict[str, Any], cv: dict[str, Any]) -> dict[str, float | None]:
     return {k: round(ours[k] / cv[k], 3) if both else None for k in ("seconds", "peak_mib")}
 
 
+def memory_split(ours: dict[str, Any], cv: dict[str, Any]) -> str | None:
+    """Each side's peak as what its process held when the clock started (its libraries and modules) plus what
+    the run added on top; None unless both runs succeeded."""
+    if not (ours["ok"] and cv["ok"] and "start_mib" in ours and "start_mib" in cv):
+        return None
+    added = {who: r["peak_mib"] - r["start_mib"] for who, r in (("ours", ours), ("cv", cv))}
+    ratio = f"{added['ours'] / added['cv']:.2f}x" if added["cv"] > 0 else "-"
+    return (
+        f"MiB at the start (imports) ours {ours['start_mib']:.0f}, OpenCV {cv['start_mib']:.0f}; added by the run "
+        f"ours {added['ours']:.0f}, OpenCV {added['cv']:.0f} ({ratio})"
+    )
+
+
 def _size(r: dict[str, Any]) -> str:
     return "x".join(map(str, r["size"])) if "size" in r else "-"
 
@@ -186,6 +216,9 @@ def print_table(results: list[dict[str, Any]]) -> None:
                 f"{max(spread['ours']):.2f} s, OpenCV {min(spread['opencv']):.2f}-{max(spread['opencv']):.2f} s"
                 + (f", time x run by run {min(paired):.2f}-{max(paired):.2f}" if paired else "")
             )
+    for res in results:
+        if (line := memory_split(res["ours"], res["opencv"])) is not None:
+            print(f"{res['name']}: {line}")
     for res in results:
         for who in ("ours", "opencv"):
             if not res[who]["ok"]:
@@ -235,13 +268,15 @@ def measure(name: str, src: Path, working_max_px: int, with_opencv: bool = True,
 
 
 def median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The run of median seconds (the lower middle one of an even count), with the median of the runs' peaks;
-    a failed run, if any failed."""
+    """The run of median seconds (the lower middle one of an even count), with the medians of the runs' peaks
+    and starting memory; a failed run, if any failed."""
     failed = [r for r in runs if not r["ok"]]
     if failed:
         return failed[0]
     middle = dict(sorted(runs, key=lambda r: r["seconds"])[(len(runs) - 1) // 2])
-    middle["peak_mib"] = statistics.median(r["peak_mib"] for r in runs)
+    for key in ("peak_mib", "start_mib"):
+        if all(key in r for r in runs):
+            middle[key] = statistics.median(r[key] for r in runs)
     return middle
 
 
