@@ -78,7 +78,7 @@ def plan(ws: JobWorkspace, cfg: MosaicConfig) -> list[str]:
     if cfg.ccd_segments > 1:
         shared["ccd_gains"] = _ccd_gains(ws, cfg.ccd_segments, thread_count(cfg.threads)).tolist()
     ws.save_part_inputs(STAGE, shared)
-    return [f"{y:07d}" for y in range(0, geo.height, _band_rows(cfg, geo))]
+    return [f"{y:07d}" for y in range(0, geo.height, _band_rows(cfg))]
 
 
 def _ccd_gains(ws: JobWorkspace, segments: int, threads: int) -> np.ndarray:
@@ -137,7 +137,7 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
             )
         return compose_block(image_of, sizes, to_frame, boxes, gains, window, cfg.feather_px, vignette, columns)
 
-    rows = _band_rows(cfg, geo)
+    rows = _band_rows(cfg)
     height = min(rows, geo.height - y)
     windows = [  # block_px square, row after row (one row of them but in a gigapixel mosaic's band)
         (x, y + dy, min(cfg.block_px, geo.width - x), min(cfg.block_px, height - dy))
@@ -203,7 +203,7 @@ def _finished(
     }
 
 
-def _band_rows(cfg: MosaicConfig, geo: Any) -> int:
+def _band_rows(cfg: MosaicConfig) -> int:
     """Rows of a part's band: ``block_px``, rounded up to a multiple of the COG's 512 px tiles (the band's tiles
     are copied into the COG as they are)."""
     return -(-cfg.block_px // COG_BLOCK_PX) * COG_BLOCK_PX
