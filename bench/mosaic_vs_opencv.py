@@ -11,11 +11,13 @@ rendered by ``tests/scenes.py`` into a temp dir. ``--scaling`` times our pipelin
 of those sizes (seconds per frame should stay flat). ``--repeat N`` runs each side N times per data set,
 alternately, and reports the medians (a single cold run varies by 10-20 % on a 2-core machine) with the ranges.
 
-Each run happens in its own spawned child process, so the peak resident memory it reports (the
-child's VmHWM) is that run's alone. A line per data set splits each side's peak into what its process held when the
-clock started (its libraries and modules: ours import rasterio's GDAL and Pydantic, OpenCV's side only cv2 and
-NumPy) and what the run added on top. Both runs start from the same JPEGs: ours is asked for working
-copies of N px on the longest side, and OpenCV gets the frames already resized to N px.
+Each run happens in its own spawned child process, so the peak resident memory it reports (the child's VmHWM)
+is that run's alone. A line per data set splits each side's peak into what its process held when the clock
+started (its libraries and modules: ours import rasterio's GDAL and Pydantic, OpenCV's side only cv2 and NumPy)
+and what the run added on top; another gives each side's CPU seconds (all its threads) and the cores it kept busy
+on average (on c cores no wall time drops below CPU seconds / c). Both runs start from the same JPEGs, and both
+clocks include decoding them: ours is asked for working copies of N px on the longest side, and OpenCV's run
+resizes the decoded frames to N px (``cv2.INTER_AREA``) before it stitches them.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import statistics
 import sys
 import tempfile
@@ -47,6 +50,12 @@ def rss_mib() -> float:
     return _status_mib("VmRSS")
 
 
+def cpu_seconds() -> float:
+    """CPU time this process has used so far, user and system, all its threads (``os.times``)."""
+    times = os.times()
+    return times.user + times.system
+
+
 def _status_mib(field: str) -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith(f"{field}:"):
@@ -68,7 +77,7 @@ def run_ours(src: str, working_max_px: int, extra: dict[str, Any] | None = None)
         stage_function(stage)
     start_mib = rss_mib()
     with tempfile.TemporaryDirectory() as out:
-        started = time.perf_counter()
+        started, cpu_started = time.perf_counter(), cpu_seconds()
         try:
             report = process_directory(Path(src), Path(out), options)
         except Exception as exc:  # a benchmark reports the failure instead of dying
@@ -79,12 +88,13 @@ def run_ours(src: str, working_max_px: int, extra: dict[str, Any] | None = None)
                 "peak_mib": peak_rss_mib(),
                 "start_mib": start_mib,
             }
-        seconds = time.perf_counter() - started
+        seconds, cpu_s = time.perf_counter() - started, cpu_seconds() - cpu_started
     used = report.get("frames_used")
     return {
         "ok": True,
         "status": "ok",
         "seconds": seconds,
+        "cpu_s": cpu_s,
         "peak_mib": peak_rss_mib(),
         "start_mib": start_mib,
         "size": [report["mosaic"]["width"], report["mosaic"]["height"]],
@@ -112,7 +122,7 @@ def run_opencv(src: str, working_max_px: int) -> dict[str, Any]:
     import cv2
 
     start_mib = rss_mib()
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), cpu_seconds()
     frames = [load_resized(p, working_max_px) for p in image_paths(Path(src))]
     stitcher = cv2.Stitcher_create(cv2.Stitcher_SCANS)
     status, pano = stitcher.stitch(frames)
@@ -124,6 +134,7 @@ def run_opencv(src: str, working_max_px: int) -> dict[str, Any]:
         "ok": ok,
         "status": f"{status} {STITCH_STATUS.get(status, '')}",
         "seconds": time.perf_counter() - started,
+        "cpu_s": cpu_seconds() - cpu_started,
         "peak_mib": peak_rss_mib(),
         "start_mib": start_mib,
     }
@@ -184,6 +195,17 @@ def memory_split(ours: dict[str, Any], cv: dict[str, Any]) -> str | None:
     )
 
 
+def cpu_split(ours: dict[str, Any], cv: dict[str, Any]) -> str | None:
+    """Each side's CPU seconds (all its threads) and the cores that kept busy on average (CPU / wall); None unless
+    both runs succeeded. On a machine of few cores, CPU seconds are what a wall time can be cut to at best."""
+    if not (ours["ok"] and cv["ok"] and "cpu_s" in ours and "cpu_s" in cv):
+        return None
+    return (
+        f"CPU s ours {ours['cpu_s']:.2f}, OpenCV {cv['cpu_s']:.2f} ({ours['cpu_s'] / cv['cpu_s']:.2f}x); cores busy "
+        f"on average ours {ours['cpu_s'] / ours['seconds']:.2f}, OpenCV {cv['cpu_s'] / cv['seconds']:.2f}"
+    )
+
+
 def _size(r: dict[str, Any]) -> str:
     return "x".join(map(str, r["size"])) if "size" in r else "-"
 
@@ -218,6 +240,9 @@ def print_table(results: list[dict[str, Any]]) -> None:
             )
     for res in results:
         if (line := memory_split(res["ours"], res["opencv"])) is not None:
+            print(f"{res['name']}: {line}")
+    for res in results:
+        if (line := cpu_split(res["ours"], res["opencv"])) is not None:
             print(f"{res['name']}: {line}")
     for res in results:
         for who in ("ours", "opencv"):
@@ -274,7 +299,7 @@ def median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
     if failed:
         return failed[0]
     middle = dict(sorted(runs, key=lambda r: r["seconds"])[(len(runs) - 1) // 2])
-    for key in ("peak_mib", "start_mib"):
+    for key in ("peak_mib", "start_mib", "cpu_s"):
         if all(key in r for r in runs):
             middle[key] = statistics.median(r[key] for r in runs)
     return middle
@@ -333,7 +358,9 @@ def main(argv: list[str] | None = None) -> int:
         from workers.config import MosaicConfig
 
         args.working_max_px = MosaicConfig().working_max_px
-    print("OpenCV gets frames resized beforehand (same input, fair comparison); one child process per run")
+    print(
+        "both clocks include decoding the JPEGs; OpenCV stitches them resized to the same size; a child process a run"
+    )
     results = [measure(d.name, d, args.working_max_px, repeat=args.repeat) for d in dirs]
     scaling: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
