@@ -8,6 +8,9 @@
 # present: scripts/gpu_wheels.sh); kernels = bench/kernels.py --large; strips = bench/strips.py on STRIPS_FRAMES
 # (40) full-size frames with STRIPS_OPTIONS (JSON, e.g. '{"threads": 4}': strip pairs at once on the GPU) and its
 # parts on STRIPS_PROCESSES worker processes (1: threads; a list such as "6 12": a run each, the frames rendered once).
+# mosaic = bench/mosaic_vs_opencv.py (ours against cv2.Stitcher on the machine's cores) on each folder of photos in
+# .bench-data/ (`scripts/gpu_wheels.sh mosaic` puts budapest1-6 and the Brighton strip at 2048 px there: ../shared
+# does not travel) and a synthetic GPS flight of MOSAIC_SYNTHETIC (30) frames; MOSAIC_REPEAT (3) runs of each side.
 # Each step has its own time limit and writes its log to OUT_DIR, so one that fails or hangs leaves the others'.
 set -uo pipefail
 out=${1:?usage: gpu_check.sh OUT_DIR [STEP...]}
@@ -45,6 +48,12 @@ for step in $steps; do
                 --keep /tmp/strip-frames --json "$out/strips_p$n.json" 2>&1 |
                 tee "$out/strips_p$n.txt"
         done
+        ;;
+    mosaic)
+        mapfile -t photos < <(find .bench-data -mindepth 1 -maxdepth 1 -type d 2>/dev/null | sort)
+        timeout "${MOSAIC_TIMEOUT:-420}" "$py" bench/mosaic_vs_opencv.py "${photos[@]}" \
+            --synthetic "${MOSAIC_SYNTHETIC:-30}" --repeat "${MOSAIC_REPEAT:-3}" --json "$out/mosaic.json" 2>&1 |
+            tee "$out/mosaic.txt"
         ;;
     *) echo "unknown step $step" ;;
     esac
