@@ -4,12 +4,13 @@ GDAL's COG driver copies a whole GeoTIFF with its overviews into the COG: while 
 its overviews and the growing COG are all on disk (a 2.55 Gpx strip peaked at 2.5x its inputs and outputs).
 Here the bands of rows the parts composed are written from the start as the COG's own tiles (the COG's codec,
 tile size and interleaving, :func:`open_cog_band_writer`), the overviews are computed from the bands in one
-pass (GDAL's masked average, or nearest for a frame index) into a small GeoTIFF per tile row of each level, and
-the COG is then put together byte by byte: header and every IFD first, then the tiles, smallest overview first
-and full resolution last, as GDAL's COG driver lays them out (its ghost header, block leaders and trailers,
-mask tiles interleaved with the imagery). Each file is deleted once its tiles are copied, so the disk holds the
-bands or the COG, not both: the peak is the COG plus a band. No tile is compressed twice: GDAL compresses each
-once, on every core, as the bands and overview rows are written.
+pass (GDAL's masked average, or nearest for a frame index; from each band's first level, which its writer can
+keep beside it as it pools the windows, else from its tiles decoded again) into a small GeoTIFF per tile row of
+each level, and the COG is then put together byte by byte: header and every IFD first, then the tiles, smallest
+overview first and full resolution last, as GDAL's COG driver lays them out (its ghost header, block leaders and
+trailers, mask tiles interleaved with the imagery). Each file is deleted once its tiles are copied, so the disk
+holds the bands or the COG, not both: the peak is the COG plus a band. No tile is compressed twice: GDAL
+compresses each once, on every core, as the bands and overview rows are written.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import errno
 import os
 import struct
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -39,7 +41,7 @@ from workers.raster_io import (
     placement,
     provenance_tags,
 )
-from workers.workspace import ProgressFn, atomic_path, noop_progress
+from workers.workspace import ProgressFn, atomic_file, atomic_path, load_npz, noop_progress
 
 Kind = Literal["rgb", "index"]  # a 3-band uint8 mosaic with its mask (average), or a uint16 frame index (nearest)
 
@@ -77,30 +79,83 @@ def band_profile(compression: str, kind: Kind) -> dict[str, Any]:
 
 
 @contextmanager
-def open_cog_band_writer(path: Path, width: int, height: int, compression: str) -> Iterator[BlockWriter]:
+def open_cog_band_writer(
+    path: Path, width: int, height: int, compression: str, first_level: Path | None = None
+) -> Iterator[BlockWriter]:
     """A band of a mosaic's rows as the COG will hold it (:func:`band_profile`), with its internal mask; yields
     ``write(window, rgb, mask)`` as ``raster_io.open_block_writer`` does. Placed nowhere: the COG's header
-    places the mosaic."""
+    places the mosaic.
+
+    ``first_level``: where to save the band's first overview level as well, pooled from the windows as they come
+    (:func:`first_level_path` of the band's final path; every window at even offsets), which the COG's overviews
+    then take instead of decoding the band's tiles again (the Brighton strip's finish: 0.24 -> 0.18 s). It costs a
+    512-row band's width x 1 KiB of memory and 2 bytes of disk a mosaic pixel until the finish: for small mosaics."""
     profile = {**band_profile(compression, "rgb"), "width": width, "height": height}
+    pooled = _FirstLevel(width, height, "rgb") if first_level is not None else None
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
 
         def write(window: Window, rgb: np.ndarray, mask: np.ndarray) -> None:
-            dst.write(np.ascontiguousarray(np.moveaxis(rgb, 2, 0)), window=window)
-            dst.write_mask(mask.astype(np.uint8) * np.uint8(255), window=window)
+            planes, covered = np.ascontiguousarray(np.moveaxis(rgb, 2, 0)), mask.astype(np.uint8)
+            dst.write(planes, window=window)
+            dst.write_mask(covered * np.uint8(255), window=window)
+            if pooled is not None:
+                pooled.add(window, _pool_planes(planes, covered))
 
         yield write
+    if pooled is not None and first_level is not None:
+        pooled.save(first_level)
 
 
 @contextmanager
-def open_cog_index_band_writer(path: Path, width: int, height: int, compression: str) -> Iterator[IndexWriter]:
-    """The frame index of a band of rows as its COG will hold it; yields ``write(window, index)``."""
+def open_cog_index_band_writer(
+    path: Path, width: int, height: int, compression: str, first_level: Path | None = None
+) -> Iterator[IndexWriter]:
+    """The frame index of a band of rows as its COG will hold it; yields ``write(window, index)``. ``first_level``
+    as :func:`open_cog_band_writer`'s (the index's even rows and columns)."""
     profile = {**band_profile(compression, "index"), "width": width, "height": height}
+    pooled = _FirstLevel(width, height, "index") if first_level is not None else None
     with rasterio.open(path, "w", **profile) as dst:
 
         def write(window: Window, index: np.ndarray) -> None:
             dst.write(np.ascontiguousarray(index, np.uint16), 1, window=window)
+            if pooled is not None:
+                pooled.add(window, (np.asarray(index, np.uint16)[::2, ::2],))
 
         yield write
+    if pooled is not None and first_level is not None:
+        pooled.save(first_level)
+
+
+def first_level_path(band: Path) -> Path:
+    """Where a band's first overview level is kept beside it (``band_0000512.tif`` -> ``band_0000512.level1.npz``),
+    when its writer was asked to (``first_level``); :func:`write_cog_from_bands` takes it from there and deletes it."""
+    return band.with_suffix(".level1.npz")
+
+
+class _FirstLevel:
+    """A band's first overview level, filled window by window: for a mosaic the 2x2 sums of its covered pixels and
+    their count, for a frame index its even rows and columns (what :func:`_first_level` decodes the band for)."""
+
+    def __init__(self, width: int, height: int, kind: Kind) -> None:
+        self.width, self.height = width, height
+        half = (-(-height // 2), -(-width // 2))
+        self.arrays = (
+            (np.zeros((*half, 3), np.uint16), np.zeros(half, np.uint16))
+            if kind == "rgb"
+            else (np.zeros(half, np.uint16),)
+        )
+
+    def add(self, window: Window, pooled: tuple[np.ndarray, ...]) -> None:
+        x, y = int(window.col_off), int(window.row_off)
+        if x % 2 or y % 2:
+            raise ValueError(f"a band's first level is pooled from windows at even offsets, not ({x}, {y})")
+        for target, part in zip(self.arrays, pooled, strict=True):
+            target[y // 2 : y // 2 + part.shape[0], x // 2 : x // 2 + part.shape[1]] = part
+
+    def save(self, path: Path) -> None:
+        names = ("sums", "counts") if len(self.arrays) == 2 else ("values",)
+        with atomic_file(path, suffix=".npz") as file:
+            np.savez(file, allow_pickle=False, rows=np.array(self.height), **dict(zip(names, self.arrays, strict=True)))
 
 
 def band_fits(path: Path, width: int, rows: int, compression: str, kind: Kind) -> bool:
@@ -230,9 +285,13 @@ def _write_overviews(
 def _first_level(band: Path, kind: Kind) -> tuple[Any, int]:
     """A band's first overview level, read a block of columns at a time, and the band's rows: for a mosaic the
     2x2 sums of its covered pixels (h', w', 3) uint16 and their count (h', w') uint16, an odd last row or column
-    summed alone; for a frame index its even rows and columns."""
+    summed alone; for a frame index its even rows and columns. Taken from beside the band where its writer kept it
+    (:func:`first_level_path`, deleted once read), when it fits the band."""
     with rasterio.open(band) as src:
         width, rows = src.width, src.height
+    kept = _kept_first_level(band, kind, width, rows)
+    if kept is not None:
+        return kept, rows
 
     def chunk(x: int) -> Any:  # a thread's own handle: a GDAL dataset is not shared between threads
         window = Window(x, 0, min(_CHUNK_PX, width - x), rows)
@@ -247,6 +306,40 @@ def _first_level(band: Path, kind: Kind) -> tuple[Any, int]:
     if kind == "index":
         return np.concatenate(blocks, axis=1), rows
     return (np.concatenate([b[0] for b in blocks], axis=1), np.concatenate([b[1] for b in blocks], axis=1)), rows
+
+
+def _kept_first_level(band: Path, kind: Kind, width: int, rows: int) -> Any:
+    """The first level a band's writer kept beside it, deleted as it is read; None where there is none, or it is not
+    this band's size (then the band is decoded)."""
+    path = first_level_path(band)
+    try:
+        with load_npz(path) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile):  # none (the usual case for a large mosaic), or cut short
+        return None
+    finally:
+        path.unlink(missing_ok=True)
+    half = (-(-rows // 2), -(-width // 2))
+    names = ("sums", "counts") if kind == "rgb" else ("values",)
+    if int(arrays.get("rows", -1)) != rows or any(
+        name not in arrays or arrays[name].shape[:2] != half or arrays[name].dtype != np.uint16 for name in names
+    ):
+        return None
+    return (arrays["sums"], arrays["counts"]) if kind == "rgb" else arrays["values"]
+
+
+def _pool_planes(planes: np.ndarray, covered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_pool` of a window's (3, h, w) uint8 ``planes`` where ``covered`` (h, w) uint8 (0 or 1): (h', w', 3)
+    and (h', w') uint16. On the contiguous planes GDAL is given: on a compose window's (h, w, 3) channels-reversed
+    view the same sums took 2.8 ms, here 0.2."""
+    masked = planes * covered
+    h, w = covered.shape
+    if h % 2 or w % 2:
+        masked = np.pad(masked, ((0, 0), (0, h % 2), (0, w % 2)))
+        covered = np.pad(covered, ((0, h % 2), (0, w % 2)))
+    s = masked[:, 0::2].astype(np.uint16) + masked[:, 1::2]
+    c = covered[0::2].astype(np.uint16) + covered[1::2]
+    return np.moveaxis(s[:, :, 0::2] + s[:, :, 1::2], 0, 2), c[:, 0::2] + c[:, 1::2]
 
 
 def _pool(sums: np.ndarray, counts: np.ndarray, dtype: type) -> tuple[np.ndarray, np.ndarray]:

@@ -19,9 +19,15 @@ from rio_tiler.io import Reader
 
 from tests.scenes import make_flight
 from workers import cog_writer
-from workers.cog_writer import open_cog_band_writer, open_cog_index_band_writer, write_cog_from_bands
+from workers.cog_writer import (
+    first_level_path,
+    open_cog_band_writer,
+    open_cog_index_band_writer,
+    write_cog_from_bands,
+)
 from workers.pipeline import process_directory, run_stage
 from workers.raster_io import open_block_writer, open_index_writer, translate_index_to_cog, translate_to_cog
+from workers.stages import compose_mosaic
 from workers.workspace import JobWorkspace
 
 TRANSFORM = [0.5, 0.0, 500000.0, 0.0, -0.5, 6000000.0]  # 0.5 m px in UTM 33N
@@ -41,17 +47,19 @@ def scene(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def write_bands(
-    folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray, codec: str
+    folder: Path, rgb: np.ndarray, mask: np.ndarray, index: np.ndarray, codec: str, kept: bool = False
 ) -> tuple[list[Path], list[Path]]:
-    """The raster as 512-row bands, as compose_mosaic's parts write them, 256 px windows at a time."""
+    """The raster as 512-row bands, as compose_mosaic's parts write them, 256 px windows at a time; ``kept``: each
+    with its first overview level beside it (``first_level_path``), as a small mosaic's are."""
     height, width = mask.shape
     bands, indexes = [], []
     for y in range(0, height, 512):
         h = min(512, height - y)
         band, band_index = folder / f"band_{y}.tif", folder / f"index_{y}.tif"
+        levels = (first_level_path(band), first_level_path(band_index)) if kept else (None, None)
         with (
-            open_cog_band_writer(band, width, h, codec) as write,
-            open_cog_index_band_writer(band_index, width, h, codec) as write_index,
+            open_cog_band_writer(band, width, h, codec, levels[0]) as write,
+            open_cog_index_band_writer(band_index, width, h, codec, levels[1]) as write_index,
         ):
             for dy in range(0, h, 256):
                 for x in range(0, width, 256):
@@ -126,18 +134,27 @@ def block_mean(rgb: np.ndarray, mask: np.ndarray, factor: int) -> tuple[np.ndarr
     return (2 * total + count[..., None]) // (2 * np.maximum(count, 1)[..., None]), count > 0
 
 
-@pytest.mark.parametrize(("codec", "size", "bigtiff"), [("deflate", (1300, 1100), None), ("jpeg", (1111, 1027), True)])
+@pytest.mark.parametrize(
+    ("codec", "size", "bigtiff", "kept"),
+    [
+        ("deflate", (1300, 1100), None, False),
+        ("deflate", (1301, 1099), None, True),
+        ("jpeg", (1111, 1027), True, False),
+    ],
+)
 def test_a_cog_from_bands_has_gdals_pixels_mask_and_tags(
-    tmp_path: Path, codec: str, size: tuple[int, int], bigtiff: bool | None
+    tmp_path: Path, codec: str, size: tuple[int, int], bigtiff: bool | None, kept: bool
 ) -> None:
     """The full resolution, its mask and the frame index are those of GDAL's COG driver to the pixel (JPEG too:
     the same tiles coded the same way); each overview is the mean of the covered pixels of its block of the full
     resolution (JPEG: as near it as the COG driver's), close to the COG driver's, and the frame index's top-left
-    pixel; the bands are gone and no scratch is left."""
+    pixel, also from the first levels the band writers kept (an odd width and height there); the bands and their
+    kept levels are gone and no scratch is left."""
     width, height = size
     rgb, mask, index = scene(width, height)
     gdal, gdal_index = gdal_cogs(tmp_path, rgb, mask, index, codec)
-    bands, indexes = write_bands(tmp_path, rgb, mask, index, codec)
+    bands, indexes = write_bands(tmp_path, rgb, mask, index, codec, kept)
+    assert all(first_level_path(band).exists() == kept for band in bands + indexes)
     ours, ours_index = assemble(tmp_path, bands, indexes, size, codec, bigtiff=bigtiff)
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("band", "index", "m.", "i.", ".o"))) == []
     same_file_but_pixels(ours, gdal)
@@ -167,6 +184,48 @@ def test_a_cog_from_bands_has_gdals_pixels_mask_and_tags(
         np.testing.assert_array_equal(overview(ours_index, factor).data[0], index[::factor, ::factor])
 
 
+def test_the_overviews_take_a_bands_kept_first_level_and_decode_one_that_does_not_fit(tmp_path: Path) -> None:
+    """A band's kept first level is what the overviews are made from: a 2x2 sum raised there by 4 shows as +1 in the
+    COG's first overview and nowhere else. One of another size, or cut short, is passed over and its band decoded.
+    None is left."""
+    width, height = 700, 1100  # three bands
+    rgb, mask, index = scene(width, height)
+    bands, indexes = write_bands(tmp_path, rgb, mask, index, "deflate", kept=True)
+    kept = first_level_path(bands[0])
+    with np.load(kept) as data:
+        arrays = {name: data[name] for name in data.files}
+    whole = (arrays["counts"] == 4) & (arrays["sums"].max(axis=2) < 4 * 250)
+    r, c = (int(v[0]) for v in np.nonzero(whole))
+    arrays["sums"][r, c] += 4
+    np.savez(kept, **arrays)
+    np.savez(
+        first_level_path(bands[1]),
+        rows=np.array(512),
+        sums=np.zeros((4, 4, 3), np.uint16),
+        counts=np.zeros((4, 4), np.uint16),
+    )
+    first_level_path(indexes[2]).write_bytes(b"PK\x03\x04 cut short")
+    ours, ours_index = assemble(tmp_path, bands, indexes, (width, height), "deflate")
+    assert not list(tmp_path.glob("*.level1.npz"))
+    expected, covered = block_mean(rgb, mask, 2)
+    level = overview(ours, 2)
+    np.testing.assert_array_equal(~np.ma.getmaskarray(level)[0], covered)
+    changed = np.moveaxis(level.data, 0, 2).astype(np.int64) - expected
+    assert (changed[r, c] == 1).all()
+    changed[r, c] = 0
+    assert not changed[covered].any()
+    np.testing.assert_array_equal(overview(ours_index, 2).data[0], index[::2, ::2])
+
+
+def test_a_first_level_is_kept_only_from_windows_at_even_offsets(tmp_path: Path) -> None:
+    """Pooled 2x2 blocks must not straddle two windows: a window at an odd offset is refused."""
+    band = tmp_path / "band.tif"
+    with open_cog_band_writer(band, 64, 64, "deflate", first_level_path(band)) as write:
+        write(Window(0, 0, 8, 8), np.zeros((8, 8, 3), np.uint8), np.ones((8, 8), bool))
+        with pytest.raises(ValueError, match="even offsets"):
+            write(Window(9, 0, 8, 8), np.zeros((8, 8, 3), np.uint8), np.ones((8, 8), bool))
+
+
 def test_rio_tiler_reads_the_same_tiles_from_its_overviews(tmp_path: Path) -> None:
     """A web map's tiles at a zoom that reads the overviews (the whole raster in one 256 px tile) and at one
     that reads the full resolution, from the assembled COG and from GDAL's."""
@@ -188,6 +247,18 @@ def read_outputs(ws: JobWorkspace) -> dict[str, Any]:
     with rasterio.open(ws.mosaic_path()) as src, rasterio.open(ws.frame_index_path()) as index:
         factor = src.overviews(1)[0]
         return {"mosaic": src.read(masked=True), "index": index.read(1), "overview": overview(ws.mosaic_path(), factor)}
+
+
+def every_level(ws: JobWorkspace) -> list[np.ndarray]:
+    """Both COGs' pixels and masks at full resolution and every overview level."""
+    arrays = []
+    for path in (ws.mosaic_path(), ws.frame_index_path()):
+        with rasterio.open(path) as src:
+            factors = src.overviews(1)
+        for level in [None, *range(len(factors))]:
+            with rasterio.open(path, overview_level=level) as src:
+                arrays += [src.read(), src.read_masks()]
+    return arrays
 
 
 def same_outputs(ws: JobWorkspace, before: dict[str, Any]) -> None:
@@ -212,9 +283,10 @@ def test_a_mosaic_is_composed_into_cogs_from_its_bands_and_a_stopped_finish_writ
 ) -> None:
     """compose_mosaic: bands of 512 rows (block_px 256 rounded up to the COG's tiles) written as the COG's tiles
     and assembled into the mosaic and frame index, with no scratch mosaic; composed again, the same COGs.
-    Stopped midway (two bands copied into the COG and deleted), with a band an older version wrote as ZSTD and a
+    Stopped midway (a band copied into the COG and deleted), with a band an older version wrote as ZSTD and a
     killed process's half-written COG beside it, the finish composes those bands again and writes the same
-    COGs."""
+    COGs. The overviews come from the first levels the parts kept beside the bands, or from the bands decoded
+    again (a large mosaic's, and the bands whose kept levels a stopped finish used up), the same either way."""
     make_flight(tmp_path / "frames", n_frames=6, frame_size=(640, 640), layout="grid", seed=5)
     process_directory(tmp_path / "frames", tmp_path / "job", {"working_max_px": 640, "block_px": 256})
     ws = JobWorkspace(tmp_path / "job")
@@ -223,10 +295,31 @@ def test_a_mosaic_is_composed_into_cogs_from_its_bands_and_a_stopped_finish_writ
     ws.forget_stage_report("compose_mosaic")
     for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
         record.unlink()
+    kept, take = list[bool](), cog_writer._kept_first_level
+
+    def taken(*args: Any) -> Any:  # whether each band's overviews came from the first level kept beside it
+        level = take(*args)
+        kept.append(level is not None)
+        return level
+
+    monkeypatch.setattr(cog_writer, "_kept_first_level", taken)
     run_stage(ws, "mosaic", "compose_mosaic")
     keys = ws.load_plan("compose_mosaic")
     assert [ws.load_part("compose_mosaic", k)["rows"] for k in keys[:-1]] == [512] * (len(keys) - 1)
     same_outputs(ws, before)
+    assert kept == [True] * 2 * len(keys)  # every band's and index band's first level taken from beside it
+    levels = every_level(ws)
+    ws.forget_stage_report("compose_mosaic")  # and as a large mosaic's: the bands decoded again for the overviews
+    for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
+        record.unlink()
+    monkeypatch.setattr(compose_mosaic, "FIRST_LEVEL_MAX_PX", 0)
+    kept.clear()
+    run_stage(ws, "mosaic", "compose_mosaic")
+    assert kept == [False] * 2 * len(keys)
+    for ours, theirs in zip(every_level(ws), levels, strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    monkeypatch.setattr(compose_mosaic, "FIRST_LEVEL_MAX_PX", 1 << 27)
+    assert not list(ws.root.rglob("*.level1.npz"))
 
     ws.forget_stage_report("compose_mosaic")
     for record in (ws.root / "parts" / "compose_mosaic").glob("part_*.json"):
@@ -234,7 +327,7 @@ def test_a_mosaic_is_composed_into_cogs_from_its_bands_and_a_stopped_finish_writ
     copy, copied = cog_writer._copy_tiles, list[str]()
 
     def killed(out: Any, source: Any) -> int:
-        if source.path.name.startswith("band_") and len(copied) == 2:
+        if source.path.name.startswith("band_") and len(copied) == 1:
             raise RuntimeError("worker killed")
         copied.extend([source.path.name] if source.path.name.startswith("band_") else [])
         return copy(out, source)
@@ -244,15 +337,21 @@ def test_a_mosaic_is_composed_into_cogs_from_its_bands_and_a_stopped_finish_writ
         run_stage(ws, "mosaic", "compose_mosaic")
     monkeypatch.setattr(cog_writer, "_copy_tiles", copy)
     folder = ws.root / "parts" / "compose_mosaic"
-    assert len(copied) == 2 and not any((folder / name).exists() for name in copied)
+    assert len(copied) == 1 and not any((folder / name).exists() for name in copied)
     older = folder / f"band_{int(keys[2]):07d}.tif"  # not copied yet: now as an older version wrote it
     with rasterio.open(older) as src:
         width, height = src.width, src.height
     with open_block_writer(older, width, height, None, None, compress="zstd") as write:
         write(Window(0, 0, width, height), np.zeros((height, width, 3), np.uint8), np.ones((height, width), bool))
     (ws.root / ".mosaic.tif.killed.tif").write_bytes(b"half a COG")  # what a killed process's atomic write leaves
+    kept.clear()
     run_stage(ws, "mosaic", "compose_mosaic")
     same_outputs(ws, before)
+    # the bands composed again (the one copied, the older one) kept their first levels; the stopped finish had used
+    # up the others' (those bands decoded again, to the same overviews), not yet the index bands' (stopped before)
+    assert kept == [n in (0, 2) for n in range(len(keys))] + [True] * len(keys), kept
+    for ours, theirs in zip(every_level(ws), levels, strict=True):
+        np.testing.assert_array_equal(ours, theirs)
 
 
 def test_an_overview_row_that_cannot_be_written_fails_the_cog(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

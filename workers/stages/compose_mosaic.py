@@ -33,7 +33,13 @@ from workers.algorithms.mosaic import (
     seam_points,
     seam_visibility,
 )
-from workers.cog_writer import band_fits, open_cog_band_writer, open_cog_index_band_writer, write_cog_from_bands
+from workers.cog_writer import (
+    band_fits,
+    first_level_path,
+    open_cog_band_writer,
+    open_cog_index_band_writer,
+    write_cog_from_bands,
+)
 from workers.config import MosaicConfig
 from workers.parallel import RecentCache, keep_freed_memory, ordered_imap, thread_count
 from workers.photo_io import WindowReader, dct_block, reads_by_window
@@ -47,6 +53,11 @@ _PHOTOS: RecentCache[Any] = RecentCache(16)  # full photos this process composes
 
 
 PART_UNIT = "band"  # what a part is, in the progress
+# mosaics whose bands keep their first overview level for the finish (cog_writer.open_cog_band_writer): 2.5 bytes
+# of disk a mosaic pixel until the finish, and a band's width x 1.25 KiB of memory while a part writes it; a wider
+# or larger mosaic's finish decodes its bands' tiles again instead
+FIRST_LEVEL_MAX_WIDTH = 16384
+FIRST_LEVEL_MAX_PX = 1 << 27
 # (plan, bands) shares of the stage's progress, finish has the rest: on the Brighton strip and 12- and 24-frame
 # synthetic flights (bench/eta.py) the plan (gains, coverage, seams) took 10-70 % of the stage, the bands 5-40 %,
 # and finish (the COGs with overviews) 20-45 %; progress at the default shares (5/85/10 %) stood at 95 % for the
@@ -151,11 +162,21 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     # each window is written as it comes: a band in progress holds a few windows, not all of them (a 75000 px
     # wide strip's band is 38 Mpx: 0.3 GB a thread, 5 GB on 16 cores, when they were kept until the band ended)
     results = ordered_imap(one, windows, inner)
+    # a small mosaic's band keeps its first overview level beside it, for the finish (cog_writer.first_level_path);
+    # a band written without one leaves none from an earlier run
+    levels = [first_level_path(ws.compose_band_path(y)), first_level_path(ws.index_band_path(y))]
+    small = geo.width <= FIRST_LEVEL_MAX_WIDTH and geo.width * geo.height <= FIRST_LEVEL_MAX_PX
+    # windows at even offsets (the 2x2 blocks never cut) and lossless tiles (the sums are the stored pixels')
+    keep = small and cfg.block_px % 2 == 0 and cfg.cog_compression != "jpeg"
+    if not keep:
+        for level in levels:
+            level.unlink(missing_ok=True)
+    level_rgb, level_index = levels if keep else (None, None)
     with (  # the COGs' own tiles, which the finish copies into them (cog_writer)
         atomic_path(ws.compose_band_path(y)) as tmp,
         atomic_path(ws.index_band_path(y)) as tmp_index,
-        open_cog_band_writer(tmp, geo.width, height, cfg.cog_compression) as write,
-        open_cog_index_band_writer(tmp_index, geo.width, height, cfg.cog_compression) as write_index,
+        open_cog_band_writer(tmp, geo.width, height, cfg.cog_compression, level_rgb) as write,
+        open_cog_index_band_writer(tmp_index, geo.width, height, cfg.cog_compression, level_index) as write_index,
     ):
         for (x, wy, w, h), (rgb, mask, index) in zip(windows, results, strict=True):
             write(Window(x, wy - y, w, h), rgb, mask)
