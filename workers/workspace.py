@@ -226,7 +226,7 @@ class JobWorkspace:
         return self.root / "features" / f"frame_{index:04d}.npz"
 
     def save_features(self, index: int, points: np.ndarray, descriptors: np.ndarray) -> None:
-        _save_npz(self._features_file(index), points=points, descriptors=descriptors)
+        save_npz(self._features_file(index), points=points, descriptors=descriptors)
 
     def load_features(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         with load_npz(self._features_file(index)) as data:
@@ -234,7 +234,7 @@ class JobWorkspace:
 
     def save_tie_corners(self, index: int, corners: np.ndarray) -> None:
         """(N, 2) float32 pixel (x, y) corners of a working copy where planar tie points are correlated."""
-        _save_npz(self._tie_corners_file(index), corners=corners)
+        save_npz(self._tie_corners_file(index), corners=corners)
 
     def tie_corners_exist(self, index: int) -> bool:
         return self._tie_corners_file(index).exists()
@@ -260,7 +260,7 @@ class JobWorkspace:
     ) -> None:
         """Tie points of a pair, and (for tracks) the indices of their features in each frame."""
         indices = {} if index_i is None or index_j is None else {"index_i": index_i, "index_j": index_j}
-        _save_npz(self._matches_file(pair), points_i=points_i, points_j=points_j, **indices)
+        save_npz(self._matches_file(pair), points_i=points_i, points_j=points_j, **indices)
 
     def load_matches(self, pair: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         with load_npz(self._matches_file(pair)) as data:
@@ -375,7 +375,7 @@ class JobWorkspace:
 
     def save_tie_points(self, points: np.ndarray) -> None:
         """The adjusted tie points, (N, 3) float64 in the job's world frame (``adjust_bundle``)."""
-        _save_npz(self.root / _TIE_POINTS, points=np.asarray(points, np.float64).reshape(-1, 3))
+        save_npz(self.root / _TIE_POINTS, points=np.asarray(points, np.float64).reshape(-1, 3))
 
     def load_tie_points(self) -> np.ndarray:
         """(N, 3) float64 world points ``adjust_bundle`` saved."""
@@ -389,7 +389,7 @@ class JobWorkspace:
             path.unlink(missing_ok=True)
             return
         origin = np.array([surface.x0, surface.y0, surface.cell])
-        _save_npz(path, heights=surface.heights, origin=origin)
+        save_npz(path, heights=surface.heights, origin=origin)
 
     def load_ortho_surface(self) -> GroundSurface | None:
         """The surface ``save_ortho_surface`` kept, or None."""
@@ -439,7 +439,7 @@ class JobWorkspace:
     def save_surface(self, surface: Surface) -> None:
         """The rectification plane and the specimen's heights above it (``rectify_specimen``), without the mesh."""
         plane = surface.frame
-        _save_npz(
+        save_npz(
             self._surface_file(),
             origin=plane.origin,
             axes=plane.axes,
@@ -463,7 +463,7 @@ class JobWorkspace:
         """Load step ``step``'s photos rectified onto the specimen: image and coverage mask, and the photos'
         pixel footprint on a coarse raster of the plane with its mm per px (``specimen.photo_footprint``)."""
         extra = {} if footprint is None else {"footprint": footprint[0], "footprint_mm_per_px": np.array(footprint[1])}
-        _save_npz(self._rectified_file(step), image=image, mask=mask, **extra)
+        save_npz(self._rectified_file(step), image=image, mask=mask, **extra)
 
     def load_photo_footprint(self, step: int) -> tuple[np.ndarray, float] | None:
         """``(h, w, 3) float32`` photo pixel footprint of load step ``step`` and its raster's mm per px (None
@@ -533,7 +533,7 @@ class JobWorkspace:
         self, left: np.ndarray, right: np.ndarray, valid_left: np.ndarray, valid_right: np.ndarray
     ) -> None:
         """The rectified pair, uint8 (H, W) or (H, W, 3), and the (H, W) bool pixels each photo covers."""
-        _save_npz(self.root / _RECTIFIED, left=left, right=right, valid_left=valid_left, valid_right=valid_right)
+        save_npz(self.root / _RECTIFIED, left=left, right=right, valid_left=valid_left, valid_right=valid_right)
 
     def load_rectified_pair(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(left, right, valid_left, valid_right)`` as ``save_rectified_pair`` saved them."""
@@ -544,7 +544,7 @@ class JobWorkspace:
         self, disparity: np.ndarray, dense: np.ndarray, filled: np.ndarray, confidence: np.ndarray
     ) -> None:
         """The matcher's maps (``disparity.Disparity``'s fields), left rectified view, px."""
-        _save_npz(self.root / _DISPARITY_ARRAYS, disparity=disparity, dense=dense, filled=filled, confidence=confidence)
+        save_npz(self.root / _DISPARITY_ARRAYS, disparity=disparity, dense=dense, filled=filled, confidence=confidence)
 
     def load_disparity_arrays(self) -> dict[str, np.ndarray]:
         """``disparity``, ``dense``, ``filled``, ``confidence`` (H, W) as ``save_disparity_arrays`` saved them."""
@@ -731,7 +731,7 @@ class JobWorkspace:
 
     def save_part_arrays(self, stage: str, **arrays: np.ndarray) -> None:
         """Arrays ``stage``'s plan worked out for its parts (a multiband mosaic's seam labels)."""
-        _save_npz(self._parts_dir(stage) / "arrays.npz", **arrays)
+        save_npz(self._parts_dir(stage) / "arrays.npz", **arrays)
 
     def load_part_arrays(self, stage: str) -> dict[str, np.ndarray]:
         with load_npz(self._parts_dir(stage) / "arrays.npz") as data:
@@ -912,7 +912,8 @@ def load_npz(path: Path) -> Iterator[Any]:
         yield data
 
 
-def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+def save_npz(path: Path, **arrays: np.ndarray) -> None:
+    """``np.savez`` of ``arrays`` (no pickles) into ``path``, atomically (:func:`atomic_file`)."""
     with atomic_file(path, suffix=".npz") as file:
         np.savez(file, allow_pickle=False, **arrays)
 
