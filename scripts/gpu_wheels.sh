@@ -19,16 +19,17 @@ cd "$(dirname "$0")/.."
 version() { .venv/bin/python -c "import importlib.metadata as m; print(m.version('$1'))"; }
 names=(affine annotated-types attrs certifi click click-plugins cligj pydantic pydantic-core pyproj rasterio
     threadpoolctl typing-inspection)  # pyproj: a job with GPS (workers.algorithms.geometry.geodesy), tests/scenes.py
-if [[ ${1:-all} != mosaic ]]; then
-    names+=(cachetools color-operations httpx2 morecantile numexpr pillow rio-tiler)
-fi
+set_name=${1:-all}
 packages=()
+if [[ $set_name != mosaic ]]; then
+    names+=(cachetools color-operations httpx2 morecantile numexpr pillow rio-tiler)
+    packages+=("pystac==1.14.3")
+fi
 for name in "${names[@]}"; do
     packages+=("$name==$(version "$name")")
 done
-[[ ${1:-all} == mosaic ]] || packages+=("pystac==1.14.3")
 rm -rf .whl  # the set asked for, not what an earlier call left
-if [[ ${1:-all} == mosaic ]]; then
+if [[ $set_name == mosaic ]]; then
     rm -rf .bench-data && mkdir .bench-data
     cp -r ../shared/data/stitching .bench-data/ && chmod -R u+w .bench-data  # (the shared copy is read-only)
     .venv/bin/python - ../shared/data/drone_brighton_strip1 .bench-data/drone_brighton_strip1_2048 <<'SHRINK'
