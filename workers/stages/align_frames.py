@@ -34,13 +34,14 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     frames = {f.index: f for f in ws.load_frames()}
     pairs = [p for p in ws.load_pairs() if p.accepted]
     dropped: list[DroppedPair] = []
+    inlier_px = _inlier_px(cfg, frames)
     for round_ in range(MAX_ROUNDS):
         progress(round_ / MAX_ROUNDS, f"adjustment round {round_ + 1}")
         root, refined, ties = _adjust(ws, cfg, frames, pairs)
-        bad = _inconsistent_pairs(refined, ties, MAX_PAIR_RMS_FACTOR * cfg.ransac_threshold_px)
+        bad = _inconsistent_pairs(refined, ties, MAX_PAIR_RMS_FACTOR * inlier_px)
         reason = "inconsistent with the other pairs after adjustment"
         if not bad:
-            bad = _conflicting_pair(pairs, refined, ties, 0.5 * cfg.ransac_threshold_px)
+            bad = _conflicting_pair(pairs, refined, ties, 0.5 * inlier_px)
             reason = "weakest overlap pulling a neighbouring pair away from its own fit"
         if not bad or round_ == MAX_ROUNDS - 1:  # the last adjustment is always over the pairs kept
             break
@@ -73,6 +74,11 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     return {"reference": root, "frames_aligned": len(used), "frames_rejected": len(rejected), "tie_point_rms_px": rms}
 
 
+def _inlier_px(cfg: MosaicConfig, frames: dict[int, Frame]) -> float:
+    """The homography inlier threshold on the frames' working copies (``MosaicConfig.threshold_scale``)."""
+    return cfg.ransac_threshold_px * cfg.threshold_scale(max(max(f.width, f.height) for f in frames.values()))
+
+
 def _adjust(
     ws: JobWorkspace,
     cfg: MosaicConfig,
@@ -101,6 +107,7 @@ def adjust_plane(
     """Frame -> plane homographies of the frames in ``initial`` (the chained start, ``root`` the identity):
     adjusted by the tie points, levelled, then adjusted with the frames' GPS fixes if they have enough."""
     sizes = {k: (frames[k].width, frames[k].height) for k in initial}
+    inlier_px = _inlier_px(cfg, frames)
 
     def adjust(
         start: dict[int, np.ndarray],
@@ -113,7 +120,7 @@ def adjust_plane(
             ties,
             fixed,
             sizes,
-            loss_scale_px=cfg.ransac_threshold_px,
+            loss_scale_px=inlier_px,
             perspective_damping=cfg.perspective_damping,
             positions=positions,
             shape_weight=shape_weight,
@@ -165,7 +172,7 @@ def _corner_sigmas(
     positions = gps_positions(frames, homs, cfg.gps_sigma_m, cfg.min_gps_frames)
     weighed = {k: (xy, sigma / tie_sigma) for k, (xy, sigma) in positions.items()}
     sizes = {k: (frames[k].width, frames[k].height) for k in homs}
-    return corner_sigmas(homs, ties, sizes, weighed, tie_sigma / square, cfg.ransac_threshold_px)
+    return corner_sigmas(homs, ties, sizes, weighed, tie_sigma / square, _inlier_px(cfg, frames))
 
 
 GPS_ROUNDS = 2  # adjustments with GPS inside, each after refitting the GPS similarity to the plane

@@ -1,5 +1,6 @@
-"""Stage ``detect_features``: SIFT keypoints and descriptors of every frame, found on a registration copy
-(``registration_max_px``) and given in working-copy pixels, so later stages never see the smaller copy."""
+"""Stage ``detect_features``: keypoints and descriptors of every frame, found on a registration copy
+(``registration_max_px``; ortho mode ``ortho_registration_max_px``) and given in working-copy pixels, so later
+stages never see the smaller copy."""
 
 from __future__ import annotations
 
@@ -33,9 +34,10 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     k = int(key)
     device = resolve_device(cfg.device)
     gray = cv2.cvtColor(ws.load_working_image(k), cv2.COLOR_BGR2GRAY)
-    # ortho: the bundle adjustment triangulates relief and needs tie points at working precision, which
-    # the homography-guided refinement of planar mode cannot give it
-    small, factors = registration_copy(gray, cfg.registration_max_px) if cfg.mode == "planar" else (gray, (1.0, 1.0))
+    # ortho: the bundle adjustment triangulates relief and needs tie points at working precision (up to the default
+    # working size), which the homography-guided refinement of planar mode cannot give it
+    max_px = cfg.registration_max_px if cfg.mode == "planar" else cfg.ortho_registration_max_px
+    small, factors = registration_copy(gray, max_px)
     points, descriptors = detect(small, cfg.feature_type, device, cfg.max_features, cfg.ncc_half_window)
     ws.save_features(k, to_full_pixels(points, factors), descriptors)
     if cfg.mode == "planar" and cfg.guided_matching:

@@ -100,12 +100,13 @@ def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: Frame, 
     i, j = fa.index, fb.index
     (pts_i, desc_i, index_i), (pts_j, desc_j, index_j) = (_features(ws, cfg, device, k) for k in (i, j))
     thresholds = (cfg.ratio_test, cfg.ncc_threshold, cfg.min_inliers)
+    inlier_px = cfg.ransac_threshold_px * cfg.threshold_scale(max(fa.width, fa.height, fb.width, fb.height))
     # planar: search only the overlap the first matches predict (the frames' other features have no partner)
     sizes = {"size_b": (fb.width, fb.height), "size_a": (fa.width, fa.height)}
-    guide = OverlapGuide(pts_i, pts_j, threshold_px=cfg.ransac_threshold_px, **sizes) if cfg.mode == "planar" else None
+    guide = OverlapGuide(pts_i, pts_j, threshold_px=inlier_px, **sizes) if cfg.mode == "planar" else None
     matches = match(desc_i, desc_j, cfg.feature_type, device, *thresholds, (index_i, index_j), guide)
     estimate = estimate_fundamental if cfg.mode == "ortho" else estimate_homography
-    H, inliers = estimate(pts_i[matches[:, 0]], pts_j[matches[:, 1]], cfg.ransac_threshold_px)
+    H, inliers = estimate(pts_i[matches[:, 0]], pts_j[matches[:, 1]], inlier_px)
     n_in = int(inliers.sum())
     accepted = H is not None and n_in >= cfg.min_inliers and n_in >= cfg.min_inlier_ratio * max(len(matches), 1)
     kind: Literal["H", "F"] = "H" if cfg.mode == "planar" else "F"
@@ -120,9 +121,7 @@ def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: Frame, 
     coarse = cfg.feature_type == "orb" or cfg.registration_max_px < max(fa.width, fa.height, fb.width, fb.height)
     if kind == "H" and H is not None and coarse and not (cfg.mode == "planar" and cfg.guided_matching):
         gray_i, gray_j = (cv2.cvtColor(ws.load_working_image(k, mmap=True), cv2.COLOR_BGR2GRAY) for k in (i, j))
-        ties_i, ties_j, close = refined_pair_ties(
-            gray_i, gray_j, ties_i, ties_j, H, cfg.ransac_threshold_px, cfg.min_inliers
-        )
+        ties_i, ties_j, close = refined_pair_ties(gray_i, gray_j, ties_i, ties_j, H, inlier_px, cfg.min_inliers)
         ties_i, ties_j, keep = ties_i[close], ties_j[close], keep[close]
     ws.save_matches((i, j), ties_i, ties_j, good[keep, 0], good[keep, 1])
     return PairRecord(i, j, len(matches), n_in, True, kind, H, tie_points=len(keep))

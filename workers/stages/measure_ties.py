@@ -99,12 +99,13 @@ def run_part(ws: JobWorkspace, cfg: MosaicConfig, key: str) -> dict[str, Any]:
     pts_i, pts_j = guided_tie_points(
         gray_i, gray_j, corners, H_ij, budget, int(about["search_px"]), fine_px=GUIDED_REFINE_PX
     )
-    H, inliers = estimate_homography(pts_i, pts_j, cfg.ransac_threshold_px)
+    H, inliers = estimate_homography(pts_i, pts_j, _inlier_px(cfg, gray_i, gray_j))
     if H is None or inliers.sum() < cfg.min_inliers:
         return {"pair": (_refine_features(ws, cfg, r, gray_i, gray_j) if r.accepted else r).to_json()}
     n_in = int(inliers.sum())
     ws.save_matches(r.pair, pts_i[inliers], pts_j[inliers])
-    matches = r.matches if r.accepted else len(pts_i)
+    # the candidates examined: the descriptor matches, or the corners correlated when more (never fewer than inliers)
+    matches = max(r.matches, len(pts_i)) if r.accepted else len(pts_i)
     guided = PairRecord(i, j, matches, max(n_in, r.inliers), True, "H", H, tie_points=n_in, found_by="guided")
     return {"pair": guided.to_json()}
 
@@ -128,6 +129,11 @@ def _key(r: PairRecord) -> str:
     return f"{r.i:05d}_{r.j:05d}"
 
 
+def _inlier_px(cfg: MosaicConfig, gray_i: np.ndarray, gray_j: np.ndarray) -> float:
+    """The pair's homography inlier threshold on these working copies (``MosaicConfig.threshold_scale``)."""
+    return cfg.ransac_threshold_px * cfg.threshold_scale(max(*gray_i.shape[:2], *gray_j.shape[:2]))
+
+
 def _refine_features(
     ws: JobWorkspace, cfg: MosaicConfig, r: PairRecord, gray_i: np.ndarray, gray_j: np.ndarray
 ) -> PairRecord:
@@ -135,8 +141,7 @@ def _refine_features(
     ties_i, ties_j = ws.load_matches(r.pair)
     index_i, index_j = ws.load_match_indices(r.pair)
     assert r.model is not None  # an accepted planar pair has its homography
-    ties_i, ties_j, close = refined_pair_ties(
-        gray_i, gray_j, ties_i, ties_j, r.model, cfg.ransac_threshold_px, cfg.min_inliers
-    )
+    inlier_px = _inlier_px(cfg, gray_i, gray_j)
+    ties_i, ties_j, close = refined_pair_ties(gray_i, gray_j, ties_i, ties_j, r.model, inlier_px, cfg.min_inliers)
     ws.save_matches(r.pair, ties_i[close], ties_j[close], index_i[close], index_j[close])
     return replace(r, tie_points=int(close.sum()))
