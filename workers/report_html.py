@@ -333,11 +333,13 @@ def report_page(report: dict[str, Any], data: FigureData, svgs: dict[str, str], 
         f"made by Fotoskhema</p>",
         _facts(report),
         "<h2>What to check</h2>",
-        *(
-            [f'<p class="warning">{esc(w)}</p>' for w in report.get("warnings", [])]
-            or ['<p class="muted">Nothing the processing found needs your attention.</p>']
-        ),
+        *[f'<p class="warning">{esc(w)}</p>' for w in report.get("warnings", [])],
         *[f'<p class="advice">{esc(a)}</p>' for a in advice],
+        *(
+            []
+            if report.get("warnings") or advice
+            else ['<p class="muted">Nothing the processing found needs your attention.</p>']
+        ),
         _figure(
             svgs["report-overlap.svg"],
             "Overlap map: how many photos see each part of the mosaic. One photo "
@@ -432,6 +434,9 @@ def _table(title: str, headers: list[str], rows: list[list[Any]], numeric: set[i
 
 
 def _pairs_table(pairs: list[dict[str, Any]]) -> str:
+    """Every pair tried; its tie points' RMS where the mosaic has one per pair (planar: an ortho job's misfits are
+    each photo's, in its reprojection table)."""
+    with_rms = any(p.get("tie_point_rms_px") is not None for p in pairs)
     rows = [
         [
             p["frames"][0],
@@ -439,16 +444,16 @@ def _pairs_table(pairs: list[dict[str, Any]]) -> str:
             p.get("matches", 0),
             p.get("inliers", 0),
             "yes" if p.get("used") else "no",
-            _num(p.get("tie_point_rms_px"), 2),
+            *([_num(p.get("tie_point_rms_px"), 2)] if with_rms else []),
             p.get("reason_unused") or "",
         ]
         for p in pairs
     ]
     return _table(
         "Photo pairs",
-        ["Photo", "Photo", "Matches", "Inliers", "Used", "RMS px", "Why not used"],
+        ["Photo", "Photo", "Matches", "Inliers", "Used", *(["RMS px"] if with_rms else []), "Why not used"],
         rows,
-        {2, 3, 5},
+        {2, 3, 5} if with_rms else {2, 3},
         "No pairs were tried.",
     )
 

@@ -146,3 +146,33 @@ def test_berlin_with_ground_control(berlin) -> None:
     for gid in ("0", "3"):
         assert gcps[gid]["rms_px"] < 5.0 and gcps[gid]["residual_m"] < 10.0
     assert gcps["1"]["rms_px"] < 2.0 and gcps["1"]["observations"] == 2
+
+
+def _berlin_ortho_job(folder: Path, options: dict) -> str:
+    """The berlin photos and their control points as an ortho job (as the API lays one out) up to its
+    photo-triangulation; what that stage says."""
+    from workers.config import build_config
+    from workers.pipeline import PipelineError, _inspect, pipeline_key, run_stage, stage_names
+    from workers.workspace import JobWorkspace
+
+    root = shared_data("sfm_opensfm/berlin")
+    ws = JobWorkspace(folder)
+    ws.save_config(build_config("mosaic", options).model_dump())
+    ws.save_inputs([_inspect(p) for p in sorted((root / "images").glob("*.jpg"))])
+    ws.gcp_dir().mkdir(parents=True, exist_ok=True)
+    (ws.gcp_dir() / "ground_control_points.json").write_bytes((root / "ground_control_points.json").read_bytes())
+    pipeline = pipeline_key("mosaic", options)
+    stages = stage_names(pipeline)
+    try:
+        for name in stages[: stages.index("adjust_bundle") + 1]:
+            run_stage(ws, pipeline, name)
+    except PipelineError as exc:
+        return str(exc)
+    return f"registered {ws.load_stage_report('adjust_bundle')['registered']}"
+
+
+def test_control_held_too_tightly_is_named_when_the_triangulation_fails(tmp_path: Path) -> None:
+    # the sample's control points agree with each other only to metres (see berlin above)
+    failed = _berlin_ortho_job(tmp_path / "tight", {"mode": "ortho"})
+    assert "from its GPS position" in failed and "held to gcp_sigma_m 0.02 m" in failed, failed
+    assert _berlin_ortho_job(tmp_path / "loose", {"mode": "ortho", "gcp_sigma_m": 1.0}) == "registered 3"

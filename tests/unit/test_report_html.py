@@ -4,6 +4,7 @@ where the numbers call for it."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import xml.etree.ElementTree as ET
@@ -117,6 +118,18 @@ def test_a_report_without_map_or_photos_still_renders() -> None:
     assert all(ET.fromstring(s).tag == f"{SVG}svg" for s in svgs.values())
 
 
+def test_all_clear_is_said_only_when_there_is_nothing_to_check() -> None:
+    data = FigureData(50, 40, None, {}, np.zeros((4, 5), np.uint8))
+    clear = "Nothing the processing found needs your attention."
+    assert clear in report_page({"mode": "planar"}, data, figures(data), [])
+    advised = report_page({"mode": "planar"}, data, figures(data), ["p3 fits the other photos worse"])
+    assert "p3 fits the other photos worse" in advised and clear not in advised
+    warned = report_page(
+        {"mode": "planar", "warnings": ["1 of 3 frames is not in the map: a.jpg"]}, data, figures(data), []
+    )
+    assert clear not in warned
+
+
 def test_the_page_says_what_the_frames_were_projected_onto() -> None:
     data = FigureData(50, 40, None, {}, np.zeros((4, 5), np.uint8))
     dense = {"kind": "dense", "pairs": 14, "dense_points": 635185, "coverage": 0.969, "cell_m": 0.342}
@@ -147,3 +160,43 @@ def test_the_brighton_strips_bend_is_named(tmp_path: Path) -> None:
     process_directory(shared_data("drone_brighton_strip1"), tmp_path / "job", {"working_max_px": 1024})
     page = (tmp_path / "job" / "report.html").read_text(encoding="utf-8")
     assert "grow toward both ends of the flight" in page
+
+
+@pytest.mark.realdata
+def test_a_pair_the_adjustment_dropped_blames_no_photo(tmp_path: Path) -> None:
+    """On the Brighton strip the adjustment drops the weak pair DJI_0026-DJI_0028: its misfit is the reason, so it
+    is not its photos' RMS (counted, they were 7.6 and 10.2 px against the strip's 0.88, and the report told the
+    user to look for motion blur in them)."""
+    from tests.conftest import shared_data
+
+    report = process_directory(shared_data("drone_brighton_strip1"), tmp_path / "job", {})
+    dropped = [p["frames"] for p in report["pairs"] if p["inliers"] and p["reason_unused"].startswith("weakest")]
+    assert dropped == [["DJI_0026.JPG", "DJI_0028.JPG"]]
+    footprints = json.loads((tmp_path / "job" / "footprints.geojson").read_text())
+    rms = {f["properties"]["name"]: f["properties"]["rms_px"] for f in footprints["features"]}
+    assert max(rms.values()) < 1.5 * report["tie_point_rms_px"], rms  # measured 1.00 against 0.88
+    assert "fit the other photos worse" not in (tmp_path / "job" / "report.html").read_text(encoding="utf-8")
+
+
+@pytest.mark.realdata
+def test_no_pair_has_more_inliers_than_matches(tmp_path: Path) -> None:
+    """budapest1-6 (no GPS): pairs re-measured by correlation report the candidates they examined as matches (the
+    descriptor matches had been kept: budapest1-2 showed 44 matches and 96 inliers)."""
+    from tests.conftest import shared_data
+
+    report = process_directory(shared_data("stitching"), tmp_path / "job", {})
+    assert len(report["frames_used"]) == 6 and report["georeferenced"] is False
+    guided = [p for p in report["pairs"] if p["found_by"] == "guided"]
+    assert guided and all(p["inliers"] <= p["matches"] for p in report["pairs"]), report["pairs"]
+
+
+def test_the_pairs_table_has_an_rms_column_only_where_pairs_have_one() -> None:
+    data = FigureData(50, 40, None, {}, np.zeros((4, 5), np.uint8))
+
+    def pairs_table(rms: float | None) -> str:
+        pair = {"frames": ["a.jpg", "b.jpg"], "matches": 90, "inliers": 80, "used": True, "tie_point_rms_px": rms}
+        page = report_page({"mode": "planar", "pairs": [pair]}, data, figures(data), [])
+        return page.split("<h2>Photo pairs</h2>")[1].split("</table>")[0]
+
+    assert "RMS px" in pairs_table(0.61) and "0.61" in pairs_table(0.61)
+    assert "RMS px" not in pairs_table(None)  # an ortho job's: its misfits are per photo

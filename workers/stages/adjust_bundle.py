@@ -46,9 +46,13 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     world = local_frame(frames, cfg.min_gps_frames)
     gps = _gps(frames, world, cfg.gps_sigma_m) if world else None
     gcps = _gcps(ws, frames, world) if world else []
+    # pixel thresholds for the working copies' size (MosaicConfig.threshold_scale)
+    scale = cfg.threshold_scale(max(max(f.width, f.height) for f in frames))
     options = ReconstructionOptions(
-        loss_scale_px=cfg.robust_loss_px,
-        outlier_threshold_px=cfg.outlier_px,
+        loss_scale_px=cfg.robust_loss_px * scale,
+        outlier_threshold_px=cfg.outlier_px * scale,
+        verify_threshold_px=ReconstructionOptions.verify_threshold_px * scale,
+        pnp_threshold_px=ReconstructionOptions.pnp_threshold_px * scale,
         refine_focal="focal" in cfg.self_calibrate,
         refine_k1="k1" in cfg.self_calibrate,
         refine_k2="k2" in cfg.self_calibrate,
@@ -67,7 +71,14 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
     )
     if len(result.poses) < 2:
         reasons = "; ".join(f"{k}: {v}" for k, v in result.report["frames"]["not_registered"].items())
-        raise PipelineError(f"photo-triangulation registered {len(result.poses)} frame(s): {reasons}")
+        # ground control held tighter than it is known pulls the cameras away from their fixes
+        hint = (
+            f" ({len(gcps)} ground control point(s) were held to gcp_sigma_m {cfg.gcp_sigma_m:g} m: if their "
+            "positions are known less well, say so with gcp_sigma_m)"
+            if gcps and "GPS position" in reasons
+            else ""
+        )
+        raise PipelineError(f"photo-triangulation registered {len(result.poses)} frame(s): {reasons}{hint}")
     progress(0.95, "report")
     report = triangulation_report(result, frames, camera, camera_source)
     ground_z = float(np.median(result.points[:, 2])) if len(result.points) else 0.0

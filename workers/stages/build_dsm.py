@@ -43,7 +43,11 @@ def run(ws: JobWorkspace, cfg: StereoDemConfig, *, progress: ProgressFn = noop_p
         return _dsm(ws, cfg, info, progress)
     if info["geometry"] == "rig":
         return _depth(ws, cfg, info)
-    return {"surface": None, "why": f"a {info['geometry']} pair has no camera model: its disparity is all it gives"}
+    article = "an" if info["geometry"][:1] in "aeiou" else "a"
+    return {
+        "surface": None,
+        "why": f"{article} {info['geometry']} pair has no camera model: its disparity is all it gives",
+    }
 
 
 def _dsm(ws: JobWorkspace, cfg: StereoDemConfig, info: dict[str, Any], progress: ProgressFn) -> dict[str, Any]:

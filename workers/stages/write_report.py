@@ -384,15 +384,17 @@ def _coverage(corners: dict[str, np.ndarray], width: int, height: int) -> np.nda
 def _planar_geometry(
     ws: JobWorkspace, frames: dict[int, Frame], align: Alignment, to_out: np.ndarray, data: FigureData, geo: Georef
 ) -> None:
-    """Camera positions (frame centres), tie points and their misfits, per-photo RMS and GPS residuals."""
+    """Camera positions (frame centres), tie points and their misfits, per-photo RMS and GPS residuals: of the
+    pairs the adjustment kept (one it dropped does not fit by definition, and would blame its two photos)."""
     homs = align.homographies
     for k, H in sorted(homs.items()):
         centre = np.array([[(frames[k].width - 1) / 2, (frames[k].height - 1) / 2]])
         data.cameras[frames[k].name] = apply_homography(to_out @ H, centre)[0]
+    dropped = {(p.i, p.j) for p in align.dropped_pairs}
     ties = {
         p.pair: TiePoints(*ws.load_matches(p.pair))
         for p in ws.load_pairs()
-        if p.accepted and p.i in homs and p.j in homs
+        if p.accepted and p.pair not in dropped and p.i in homs and p.j in homs
     }
     misfit = tie_residuals_px(homs, ties)
     points: list[np.ndarray] = []
