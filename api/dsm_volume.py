@@ -32,6 +32,8 @@ def dsm_volume(dsm_path: Path, mask_path: Path | None, polygon: list[tuple[float
         to_grid = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
         lon, lat = np.array(polygon, np.float64).T
         xs, ys = (np.asarray(v, np.float64) for v in to_grid.transform(lon, lat))
+        if not (np.isfinite(xs).all() and np.isfinite(ys).all()):  # far outside the DSM's UTM zone
+            raise InvalidInputError(f"polygon: it lies outside the DSM (beyond what its grid, {src.crs}, reaches)")
         window = _window(src, xs, ys)
         z = src.read(1, window=window, masked=True).astype(np.float64)
         transform = src.window_transform(window)
@@ -40,7 +42,9 @@ def dsm_volume(dsm_path: Path, mask_path: Path | None, polygon: list[tuple[float
     ring = [(float(x), float(y)) for x, y in zip(xs, ys, strict=True)]
     inside = geometry_mask([{"type": "Polygon", "coordinates": [[*ring, ring[0]]]}], z.shape, transform, invert=True)
     if not inside.any():
-        raise InvalidInputError("polygon: it holds no cell of the DSM (too small, or not a closed area)")
+        raise InvalidInputError(
+            "polygon: it holds no cell of the DSM (it misses the surface, or is too small or not a closed area)"
+        )
     valid = inside & ~np.ma.getmaskarray(z) & np.isfinite(z.filled(np.nan))
     rows, cols = np.nonzero(valid)
     cx, cy = _centres(transform, rows, cols)

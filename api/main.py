@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 from fastapi import Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
+from pydantic.json_schema import models_json_schema
 
 from api.auth import BearerForWrites, TrustedHosts, authorize
 from api.errors import install_error_handlers
@@ -30,6 +34,7 @@ from api.tiler import Tiler
 from core.accounts import TokenCache
 from core.db import Database
 from core.settings import Settings, get_settings
+from workers.config import JOB_KINDS
 
 
 def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:
@@ -84,4 +89,25 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         app.mount("/vendor/proj4", StaticFiles(directory=vendor / "proj4" / "dist"), name="proj4")
     if (vendor / "swagger-ui-dist").is_dir():
         app.mount("/vendor/swagger-ui", StaticFiles(directory=vendor / "swagger-ui-dist"), name="swagger-ui")
+    app.openapi = _with_option_schemas(app)  # type: ignore[method-assign]
     return app
+
+
+def _with_option_schemas(app: FastAPI) -> Callable[[], dict[str, Any]]:
+    """``app.openapi`` with every job kind's options (``workers.config.JOB_KINDS``: ``MosaicConfig`` and the others)
+    among the schemas: the routes take options as a free JSON object (checked against the kind's model, with the
+    option named in a 422), so the schema would not list them otherwise."""
+    made = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        first = app.openapi_schema is None
+        schema = made()
+        if first:
+            _, defs = models_json_schema(
+                [(model, "validation") for model in JOB_KINDS.values()], ref_template="#/components/schemas/{model}"
+            )
+            known = schema.setdefault("components", {}).setdefault("schemas", {})
+            known.update({name: s for name, s in defs.get("$defs", {}).items() if name not in known})
+        return schema
+
+    return openapi

@@ -23,6 +23,13 @@ class FlightCreate(BaseModel):
             raise ValueError("must not contain NUL characters")
         return value
 
+    @field_validator("name")
+    @classmethod
+    def _not_blank(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("must not be blank: give the flight a name")
+        return value.strip()
+
 
 class GpsFix(BaseModel):
     lat: float
@@ -93,7 +100,10 @@ class JobCreate(BaseModel):
     # JobKind.mosaic, spelled as a plain Literal: a Literal of the enum member would validate the same but
     # word its 422 message differently ("Input should be <JobKind.mosaic: 'mosaic'>")
     kind: Literal["mosaic"] = "mosaic"
-    options: dict[str, Any] = Field(default_factory=dict)
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the job's options over their defaults: MosaicConfig (in the schemas) lists every one",
+    )
 
 
 class JobOut(BaseModel):

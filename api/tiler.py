@@ -24,6 +24,7 @@ it is known before the tile is read: a revalidation with a matching ``If-None-Ma
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import threading
 from collections import OrderedDict
@@ -36,9 +37,9 @@ from typing import Any
 
 import numpy as np
 import rasterio
-import rasterio.warp
 import rio_tiler
 from morecantile import Tile
+from pyproj import Transformer
 from rio_tiler.constants import WGS84_CRS
 from rio_tiler.errors import TileOutsideBounds
 from rio_tiler.io import ImageReader, Reader
@@ -156,8 +157,10 @@ def sample_dataset(dataset: Any, x: float, y: float, lonlat: bool) -> float | No
     if lonlat:
         if dataset.crs is None:
             return None
-        xs, ys = rasterio.warp.transform(WGS84_CRS, dataset.crs, [x], [y])
-        row, col = dataset.index(xs[0], ys[0])
+        gx, gy = _from_lonlat(dataset.crs.to_wkt()).transform(x, y)
+        if not (math.isfinite(gx) and math.isfinite(gy)):  # far outside a UTM zone, beyond its projection's reach
+            return None
+        row, col = dataset.index(gx, gy)
     else:
         col, row = int(np.floor(x)), int(np.floor(y))
     if not (0 <= row < dataset.height and 0 <= col < dataset.width):
@@ -167,6 +170,13 @@ def sample_dataset(dataset: Any, x: float, y: float, lonlat: bool) -> float | No
     if not np.isfinite(value) or (nodata is not None and (value == nodata or (np.isnan(nodata) and np.isnan(value)))):
         return None
     return float(value)
+
+
+@lru_cache(maxsize=16)
+def _from_lonlat(crs_wkt: str) -> Transformer:
+    """lon/lat -> a raster's CRS; infinite where the point is outside that projection's domain (GDAL's transform
+    raises there instead)."""
+    return Transformer.from_crs("EPSG:4326", crs_wkt, always_xy=True)
 
 
 @lru_cache(maxsize=1)

@@ -37,14 +37,22 @@ class StagedFile:
     meta: dict[str, Any]
 
 
+MAX_DISPLAY_NAME = 200  # characters of a file's name kept for display
+
+
 def display_name(raw: str | None) -> str:
-    """The client's filename reduced to a harmless label: last path part, printable, 200 chars.
+    """The client's filename reduced to a harmless label: last path part, printable, at most
+    ``MAX_DISPLAY_NAME`` characters, a longer one shortened before its extension (which says what it is).
 
     Used only for display; files are stored under server-chosen names.
     """
     base = re.split(r"[\\/]", raw or "")[-1]
     cleaned = "".join(ch for ch in base if ch.isprintable()).strip(" .")
-    return cleaned[:200] or "unnamed"
+    if len(cleaned) > MAX_DISPLAY_NAME:
+        stem, dot, extension = cleaned.rpartition(".")
+        keep = f"{dot}{extension}" if stem and 0 < len(extension) <= 10 else ""
+        cleaned = cleaned[: MAX_DISPLAY_NAME - len(keep)].rstrip(" .") + keep
+    return cleaned or "unnamed"
 
 
 async def store_uploads(db: Database, settings: Settings, flight_id: int, files: list[UploadFile]) -> list[Image]:

@@ -36,7 +36,7 @@ def flight_out(flight: Flight, image_count: int) -> FlightOut:
 @router.post("", status_code=201, response_model=FlightOut)
 def create_flight(body: FlightCreate, principal: UserDep, db: DbDep) -> FlightOut:
     with db.session() as s:
-        flight = Flight(name=body.name.strip() or "flight", description=body.description, owner_id=principal.user_id)
+        flight = Flight(name=body.name, description=body.description, owner_id=principal.user_id)
         s.add(flight)
         s.flush()
         return flight_out(flight, 0)

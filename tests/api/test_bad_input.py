@@ -421,3 +421,11 @@ def test_a_422_never_echoes_a_huge_input(client: TestClient, unchanged: Callable
     response = client.post("/api/flights", json={"name": "a\x00b"})
     assert response.status_code == 422 and "NUL" in response.text
     unchanged()
+
+
+def test_a_blank_flight_name_is_422(client: TestClient, unchanged: Callable[[], None]) -> None:
+    response = client.post("/api/flights", json={"name": " \t "})
+    assert response.status_code == 422 and "blank" in response.text
+    unchanged()
+    named = client.post("/api/flights", json={"name": "  north field  "}).json()
+    assert named["name"] == "north field"

@@ -83,6 +83,10 @@ def test_a_polygon_outside_or_too_small_is_422(client: TestClient, dem: int) -> 
     far = [[10.0, 10.0], [10.001, 10.0], [10.001, 10.001]]
     outside = client.post(f"/tiles/{dem}/dsm/volume", json={"polygon": far})
     assert outside.status_code == 422 and "outside the DSM" in outside.json()["detail"]
+    meridian = -183.0 + 6 * (EPSG % 100)  # zone 32's: 90 degrees off it is beyond its projection
+    polygon = [[meridian + 90.0, 0.0], [meridian + 90.0, 1.0], [meridian + 89.0, 1.0]]
+    beyond = client.post(f"/tiles/{dem}/dsm/volume", json={"polygon": polygon})
+    assert beyond.status_code == 422 and "outside the DSM" in beyond.json()["detail"]
     point = _lonlat([(50, 50)]) * 3
     assert client.post(f"/tiles/{dem}/dsm/volume", json={"polygon": point}).status_code == 422
     for bad in ({"polygon": far[:2]}, {"polygon": far, "base": "median"}, {"polygon": [[200.0, 0.0]] * 3}):

@@ -186,7 +186,21 @@ def test_docs_render_offline(client: TestClient) -> None:
     assert "/vendor/swagger-ui/swagger-ui-bundle.js" in html and "cdn" not in html.lower()
     assert client.get("/vendor/swagger-ui/swagger-ui-bundle.js").status_code == 200
     assert client.get("/vendor/leaflet/leaflet.js").status_code == 200
-    assert client.get("/openapi.json").json()["info"]["title"] == "Fotoskhema"
+    schema = client.get("/openapi.json").json()
+    assert schema["info"]["title"] == "Fotoskhema"
+    # every kind's options are in the schema, though a route takes them as a free object
+    options = schema["components"]["schemas"]
+    assert {
+        "MosaicConfig",
+        "CalibrationConfig",
+        "StereoCalibrationConfig",
+        "CrackSurveyConfig",
+        "StereoDemConfig",
+    } <= set(options)
+    working = options["MosaicConfig"]["properties"]["working_max_px"]
+    assert (working["default"], working["minimum"], working["maximum"]) == (2048, 256, 20000)
+    assert "square_mm" in options["CalibrationConfig"]["properties"]
+    assert "MosaicConfig" in options["JobCreate"]["properties"]["options"]["description"]
     assert client.get("/api/health").json()["status"] == "ok"
     settings = client.app.state.settings  # type: ignore[attr-defined]
     config = client.get("/api/config").json()

@@ -153,3 +153,13 @@ def test_a_jobs_photos_by_index(client: TestClient, frames: list[Path]) -> None:
     assert missing.status_code == 404 and "has no photo 3 (it has 3)" in missing.json()["detail"]
     mallory = user_headers(client, "mallory")
     assert client.get(f"/api/jobs/{job['id']}/photos/0/preview", headers=mallory).status_code == 404
+
+
+def test_a_long_file_name_is_shortened_before_its_extension(client: TestClient, frames: list[Path]) -> None:
+    flight = client.post("/api/flights", json={"name": "long names"}).json()["id"]
+    name = "N" * 250 + ".jpg"
+    files = [("files", (name, frames[0].read_bytes(), "image/jpeg"))]
+    response = client.post(f"/api/flights/{flight}/images", files=files)
+    assert response.status_code == 201, response.text
+    (image,) = response.json()["images"]
+    assert image["filename"] == "N" * 196 + ".jpg"

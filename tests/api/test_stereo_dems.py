@@ -111,6 +111,10 @@ def test_rpc_pair_from_upload_to_tiles_and_points(client: TestClient, api_settin
     assert abs(point["elevation_m"] - float(rpc_pair.height(*centre))) < 1.0
     far = client.get(f"/tiles/{job['id']}/dsm/point", params={"lon": lon + 1, "lat": lat}).json()
     assert far["elevation_m"] is None and far["state"] is None
+    meridian = -183.0 + 6 * (rpc_pair.epsg % 100)  # the UTM zone's; 90 degrees off it is beyond its projection
+    for lon_out, lat_out in ((meridian + 90.0, 0.0), (meridian - 89.0, 1.0), (0.0, 0.0)):
+        beyond = client.get(f"/tiles/{job['id']}/dsm/point", params={"lon": lon_out, "lat": lat_out})
+        assert beyond.status_code == 200 and beyond.json()["elevation_m"] is None, (lon_out, beyond.text)
 
     # the disparity map: a pixel grid, with its value and confidence under a pixel
     grid = client.get(f"/tiles/{job['id']}/disparity/tilejson.json").json()
