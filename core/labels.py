@@ -103,6 +103,10 @@ LABELS: dict[str, dict[str, str]] = {
         "size_mismatch": "Other size than the flight's photos",
         "not_checked": "Not checked",
     },
+    "convention": {  # of a camera's distortion terms (workers.algorithms.geometry.camera)
+        "distort_ideal": "Distorts the ideal projection (OpenCV's)",
+        "restore_ideal": "Restores the ideal projection from the observed",
+    },
     "camera_parameter": {
         "focal_px_original": "Focal length (px of the full-size photo)",
         "k1": "Radial distortion k1",

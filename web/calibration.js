@@ -22,6 +22,7 @@ import {
   messageOf,
 } from "./lib.js";
 import { calibrationPhotos } from "./calibration-marks.js";
+import { label } from "./labels.js";
 import { JobKind } from "./kinds.js";
 
 export const CALIBRATION_KINDS = new Set([JobKind.CALIBRATION, JobKind.STEREO_CALIBRATION]);
@@ -72,7 +73,7 @@ function cameraBody(result) {
       plumb ? ["Lines", String(list(result.lines).length)] : ["Photos used", String(views.length), { "data-testid": "views-used" }],
       ["Photos left out", String(strings(result.left_out).length)],
       ["Image size", sizeText(camera)],
-      ["Convention", camera.convention || "–"],
+      ["Distortion convention", camera.convention ? label("convention", camera.convention) : "–"],
     ], { class: "facts wide headline" }),
     result.note ? h("p", { class: "muted small" }, result.note) : null,
     h(
@@ -240,7 +241,7 @@ function rigCameraTable(left, right) {
     ["RMS px", formatNumber(left.rms_px, 3), formatNumber(right.rms_px, 3)],
     ...CAMERA_PARAMS.map((name) => [h("span", { class: "mono" }, name), paramText(name, l[name]), paramText(name, r[name])]),
     ["Size", sizeText(l), sizeText(r)],
-    ["Convention", l.convention || "–", r.convention || "–"],
+    ["Distortion convention", ...[l, r].map((c) => (c.convention ? label("convention", c.convention) : "–"))],
   ];
   return dataTable({
     caption: "Left and right camera",

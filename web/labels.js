@@ -91,6 +91,10 @@ export const LABELS = Object.freeze({
     "size_mismatch": "Other size than the flight's photos",
     "not_checked": "Not checked"
   },
+  "convention": {
+    "distort_ideal": "Distorts the ideal projection (OpenCV's)",
+    "restore_ideal": "Restores the ideal projection from the observed"
+  },
   "camera_parameter": {
     "focal_px_original": "Focal length (px of the full-size photo)",
     "k1": "Radial distortion k1",

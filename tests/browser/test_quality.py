@@ -118,6 +118,7 @@ def test_calibration_job_page(signed_in_page, live_service) -> None:
     expect(page.get_by_test_id("job-status")).to_have_text("succeeded")
     expect(page.locator(".breadcrumb")).to_contain_text("Calibrations")
     expect(page.locator("main")).not_to_contain_text("null")
+    expect(page.locator("main")).to_contain_text("Distorts the ideal projection (OpenCV's)")  # not distort_ideal
     rms = page.get_by_test_id("calibration-rms")
     expect(rms).to_contain_text("px")
     (rms_px,) = _numbers(rms.inner_text())
@@ -190,6 +191,7 @@ def test_stereo_rig_page_and_measure(signed_in_page, live_service) -> None:
     assert 0 < _numbers(baseline.inner_text())[0] < 500  # OpenCV's sample rig: a few board squares apart
     expect(page.get_by_test_id("pair-row")).to_have_count(6)
     expect(page.get_by_test_id("rig-cameras")).to_contain_text("fx")
+    expect(page.get_by_test_id("rig-cameras")).to_contain_text("Distorts the ideal projection (OpenCV's)")
 
     page.get_by_test_id("measure-input").fill("1 2 3")
     page.get_by_test_id("measure-submit").click()

@@ -11,6 +11,7 @@ from typing import get_args
 from core.eta import BASES
 from core.kinds import JobKind, JobStatus
 from core.labels import LABELS, javascript, label
+from workers.algorithms.geometry.camera import CONVENTIONS
 from workers.algorithms.sfm import DATUMS, GCP_ROLES, IMAGE_STATUSES
 from workers.config import MosaicConfig
 from workers.pipeline import PIPELINES
@@ -37,6 +38,7 @@ def emitted() -> dict[str, set[str]]:
         "gcp_role": set(GCP_ROLES),
         "camera_parameter": set(re.findall(r'"(\w+)": \{"initial"', source)),
         "eta_basis": set(BASES),
+        "convention": set(CONVENTIONS),
     }
 
 
