@@ -179,7 +179,10 @@ def relief_maps(
     it, (X, Y, surface(X, Y)), in the frame as photographed (``camera`` with its distortion). The rendered frame
     and the plane are then related by the same homography as the plane's own rectification, so composing
     is unchanged, but ground off the plane lands at its map position instead of being displaced by its
-    relief. Occlusions are not resolved (the surface is smooth).
+    relief. Occlusions are not resolved (the surface is smooth). Where the surface's point lies outside the
+    photo (relief above the plane near the frame's far edges), the plane's point is sampled instead: its relief
+    displacement stays there, where the photo's border repeated had streaked the mosaic (on the Brighton strip,
+    along the wood at its outer edge).
 
     R, C : the frame's pose, ``X_cam = R (X - C)``; camera : its adjusted camera, with distortion
     Returns (y1 - y0, x1 - x0) float32 maps into the photographed frame.
@@ -190,8 +193,15 @@ def relief_maps(
     rays = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)]) @ (R.T @ np.linalg.inv(ideal.matrix())).T
     t = (z0 - C[2]) / rays[:, 2]
     ground = C + t[:, None] * rays
+    flat = camera.project((ground - C) @ R.T)
     ground[:, 2] = surface.height_at(ground[:, 0], ground[:, 1])
     seen = camera.project((ground - C) @ R.T)
+    # where the surface's point lies outside the photo (relief above the plane, near the frame's far edge), the
+    # plane's: its border repeated would streak the mosaic there
+    outside = ~(
+        (seen[:, 0] >= 0) & (seen[:, 0] <= camera.width - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= camera.height - 1)
+    )
+    seen[outside] = flat[outside]
     shape = (y1 - y0, x1 - x0)
     return seen[:, 0].reshape(shape).astype(np.float32), seen[:, 1].reshape(shape).astype(np.float32)
 
