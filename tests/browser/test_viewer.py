@@ -116,3 +116,19 @@ def test_flight_list_and_offline_api_docs(signed_in_page, live_service) -> None:
     expect(page.locator(".swagger-ui .opblock").first).to_be_visible()  # the spec loaded and rendered
     page.wait_for_load_state("networkidle")
     watch.assert_clean(live_service.url)
+
+
+def test_a_long_unspaced_flight_name_wraps_instead_of_widening_the_page(signed_in_page, live_service) -> None:
+    """A 200-character name and a 300-character description without spaces had made the flight page 3300 px wide
+    (the breadcrumb kept the name on one line)."""
+    import httpx
+    from playwright.sync_api import expect
+
+    page, watch = signed_in_page
+    body = {"name": "Q" * 200, "description": "d" * 300}
+    flight = httpx.post(f"{live_service.url}/api/flights", json=body, timeout=10, headers=live_service.headers).json()
+    page.goto(f"{live_service.url}/#/flights/{flight['id']}")
+    expect(page.locator("main h1")).to_contain_text("Q" * 20)
+    page.wait_for_load_state("networkidle")
+    assert page.evaluate("document.documentElement.scrollWidth") <= page.evaluate("window.innerWidth")
+    watch.assert_clean(live_service.url)
