@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 import rasterio
-from pyproj import Transformer
 from rasterio.features import geometry_mask
 from rasterio.windows import Window
 
 from api.errors import InvalidInputError, TooLargeError
+from api.tiler import lonlat_transformer
 
 MAX_CELLS = 25_000_000  # DSM cells one request may sum (about 100 MB of float32 at once)
 
@@ -29,9 +29,8 @@ def dsm_volume(dsm_path: Path, mask_path: Path | None, polygon: list[tuple[float
     ((lon, lat) vertices, the ring closed or not). 422 for a polygon outside the DSM or without area, 413 for one
     over ``MAX_CELLS`` cells."""
     with rasterio.open(dsm_path) as src:
-        to_grid = Transformer.from_crs("EPSG:4326", src.crs, always_xy=True)
         lon, lat = np.array(polygon, np.float64).T
-        xs, ys = (np.asarray(v, np.float64) for v in to_grid.transform(lon, lat))
+        xs, ys = (np.asarray(v, np.float64) for v in lonlat_transformer(src.crs.to_wkt()).transform(lon, lat))
         if not (np.isfinite(xs).all() and np.isfinite(ys).all()):  # far outside the DSM's UTM zone
             raise InvalidInputError(f"polygon: it lies outside the DSM (beyond what its grid, {src.crs}, reaches)")
         window = _window(src, xs, ys)

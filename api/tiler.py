@@ -157,7 +157,7 @@ def sample_dataset(dataset: Any, x: float, y: float, lonlat: bool) -> float | No
     if lonlat:
         if dataset.crs is None:
             return None
-        gx, gy = _from_lonlat(dataset.crs.to_wkt()).transform(x, y)
+        gx, gy = lonlat_transformer(dataset.crs.to_wkt()).transform(x, y)
         if not (math.isfinite(gx) and math.isfinite(gy)):  # far outside a UTM zone, beyond its projection's reach
             return None
         row, col = dataset.index(gx, gy)
@@ -173,9 +173,9 @@ def sample_dataset(dataset: Any, x: float, y: float, lonlat: bool) -> float | No
 
 
 @lru_cache(maxsize=16)
-def _from_lonlat(crs_wkt: str) -> Transformer:
-    """lon/lat -> a raster's CRS; infinite where the point is outside that projection's domain (GDAL's transform
-    raises there instead)."""
+def lonlat_transformer(crs_wkt: str) -> Transformer:
+    """lon/lat -> a raster's CRS, made once per CRS; infinite where the point is outside that projection's domain
+    (GDAL's transform raises there instead)."""
     return Transformer.from_crs("EPSG:4326", crs_wkt, always_xy=True)
 
 

@@ -165,6 +165,10 @@ class MosaicConfig(BaseModel):
             return 1.0
         return max(1.0, working_px / WORKING_MAX_PX)
 
+    def inlier_px(self, working_px: int) -> float:
+        """``ransac_threshold_px`` on working copies ``working_px`` on their longest side (:meth:`threshold_scale`)."""
+        return self.ransac_threshold_px * self.threshold_scale(working_px)
+
     @model_validator(mode="after")
     def _strips_are_native(self) -> MosaicConfig:
         # a strip's working copy is a reduced pyramid level: its mosaic is at the frames' own resolution

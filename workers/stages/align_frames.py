@@ -76,7 +76,7 @@ def run(ws: JobWorkspace, cfg: MosaicConfig, *, progress: ProgressFn = noop_prog
 
 def _inlier_px(cfg: MosaicConfig, frames: dict[int, Frame]) -> float:
     """The homography inlier threshold on the frames' working copies (``MosaicConfig.threshold_scale``)."""
-    return cfg.ransac_threshold_px * cfg.threshold_scale(max(max(f.width, f.height) for f in frames.values()))
+    return cfg.inlier_px(max(max(f.width, f.height) for f in frames.values()))
 
 
 def _adjust(

@@ -100,7 +100,7 @@ def _match_pair(ws: JobWorkspace, cfg: MosaicConfig, device: Device, fa: Frame, 
     i, j = fa.index, fb.index
     (pts_i, desc_i, index_i), (pts_j, desc_j, index_j) = (_features(ws, cfg, device, k) for k in (i, j))
     thresholds = (cfg.ratio_test, cfg.ncc_threshold, cfg.min_inliers)
-    inlier_px = cfg.ransac_threshold_px * cfg.threshold_scale(max(fa.width, fa.height, fb.width, fb.height))
+    inlier_px = cfg.inlier_px(max(fa.width, fa.height, fb.width, fb.height))
     # planar: search only the overlap the first matches predict (the frames' other features have no partner)
     sizes = {"size_b": (fb.width, fb.height), "size_a": (fa.width, fa.height)}
     guide = OverlapGuide(pts_i, pts_j, threshold_px=inlier_px, **sizes) if cfg.mode == "planar" else None

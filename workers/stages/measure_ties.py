@@ -131,7 +131,7 @@ def _key(r: PairRecord) -> str:
 
 def _inlier_px(cfg: MosaicConfig, gray_i: np.ndarray, gray_j: np.ndarray) -> float:
     """The pair's homography inlier threshold on these working copies (``MosaicConfig.threshold_scale``)."""
-    return cfg.ransac_threshold_px * cfg.threshold_scale(max(*gray_i.shape[:2], *gray_j.shape[:2]))
+    return cfg.inlier_px(max(*gray_i.shape[:2], *gray_j.shape[:2]))
 
 
 def _refine_features(

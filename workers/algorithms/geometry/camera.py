@@ -186,6 +186,13 @@ class Camera:
         p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
         return self.normalised_to_pixel(p[:, :2] / p[:, 2:3])
 
+    def in_frame(self, uv: np.ndarray) -> np.ndarray:
+        """``(..., 2)`` pixels (x, y) -> ``(...)`` bool: on the photo (centres 0 .. width - 1, 0 .. height - 1)."""
+        uv = np.asarray(uv)
+        return np.asarray(
+            (uv[..., 0] >= 0) & (uv[..., 0] <= self.width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= self.height - 1)
+        )
+
     def unproject(self, uv: np.ndarray) -> np.ndarray:
         """Pixels ``(N, 2)`` -> unit rays ``(N, 3)`` in the camera frame."""
         xy = self.pixel_to_normalised(uv)

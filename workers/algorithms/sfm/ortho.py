@@ -193,15 +193,14 @@ def relief_maps(
     rays = np.column_stack([u.ravel(), v.ravel(), np.ones(u.size)]) @ (R.T @ np.linalg.inv(ideal.matrix())).T
     t = (z0 - C[2]) / rays[:, 2]
     ground = C + t[:, None] * rays
-    flat = camera.project((ground - C) @ R.T)
     ground[:, 2] = surface.height_at(ground[:, 0], ground[:, 1])
     seen = camera.project((ground - C) @ R.T)
     # where the surface's point lies outside the photo (relief above the plane, near the frame's far edge), the
     # plane's: its border repeated would streak the mosaic there
-    outside = ~(
-        (seen[:, 0] >= 0) & (seen[:, 0] <= camera.width - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= camera.height - 1)
-    )
-    seen[outside] = flat[outside]
+    outside = ~camera.in_frame(seen)
+    plane = ground[outside]
+    plane[:, 2] = z0
+    seen[outside] = camera.project((plane - C) @ R.T)
     shape = (y1 - y0, x1 - x0)
     return seen[:, 0].reshape(shape).astype(np.float32), seen[:, 1].reshape(shape).astype(np.float32)
 

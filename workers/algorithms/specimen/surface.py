@@ -317,11 +317,7 @@ def _sample(
     cos_incidence = np.abs(np.einsum("ij,ij->i", normals.reshape(-1, 3), view)) / distance
     density = camera.fx * camera.fy * cos_incidence / distance**2
     uv32 = uv.reshape(*shape, 2).astype(np.float32)
-    return uv32, density.reshape(shape).astype(np.float32), front.reshape(shape) & _in_frame(camera, uv32)
-
-
-def _in_frame(camera: Camera, uv: np.ndarray) -> np.ndarray:
-    return (uv[..., 0] >= 0) & (uv[..., 0] <= camera.width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= camera.height - 1)
+    return uv32, density.reshape(shape).astype(np.float32), front.reshape(shape) & camera.in_frame(uv32)
 
 
 COARSE_STEP = 8  # raster pixels between the exactly computed nodes of a plate's maps
@@ -350,7 +346,7 @@ def _plane_maps(
         cv2.remap(a, grid_x, grid_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         for a in (uv[..., 0], uv[..., 1], density)
     ]
-    seen = _in_frame(camera, np.stack(fine[:2], axis=-1))
+    seen = camera.in_frame(np.stack(fine[:2], axis=-1))
     return fine[0], fine[1], np.where(seen, fine[2], 0.0).astype(np.float32)
 
 

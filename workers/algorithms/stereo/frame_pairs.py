@@ -93,8 +93,7 @@ def _seen(camera: Camera, pose: Pose, points: np.ndarray) -> np.ndarray:
     cam = (points - C) @ R.T
     front = cam[:, 2] > 1e-9
     px = camera.project(np.where(front[:, None], cam, [0.0, 0.0, 1.0]))
-    inside = (px[:, 0] >= 0) & (px[:, 0] <= camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= camera.height - 1)
-    return np.asarray(front & inside)
+    return np.asarray(front & camera.in_frame(px))
 
 
 @dataclass(frozen=True, eq=False)
